@@ -155,6 +155,7 @@ def convert(
     out_path: str | os.PathLike,
     *,
     calib: RigCalibration | None = None,
+    require_calib: bool = True,
     progress: bool = True,
 ) -> dict:
     """Write ``recording`` as a canonical sequence at ``out_path`` (atomically) and return its summary.
@@ -163,6 +164,8 @@ def convert(
         recording: any opened recording.
         out_path: the ``.h5`` to write.
         calib: overrides (or supplies) the recording's calibration.
+        require_calib: refuse to write a sequence without calibration (geometry needs it); with
+            False, only sensor sizes are stored and ``/calib`` is absent.
         progress: show a tqdm bar per camera.
     """
     from tqdm import tqdm
@@ -170,6 +173,9 @@ def convert(
     from .sequence import Sequence, SequenceWriter
 
     calib = calib or recording.calibration()
+    if calib is None and require_calib:
+        raise DataError(recording.path, "no calibration in this recording: pass one (--calib, a Kalibr camchain-imucam or "
+                                        "ROS camera_info yaml), or convert without it (--no-calib)")
     sizes = {cam: recording.sensor_size(cam) for cam in recording.cameras()}
     if calib is not None:
         for cam, (w, h) in sizes.items():
