@@ -108,6 +108,7 @@ class _Format:
 
 
 _FORMATS: list[_Format] = []
+_BUILTINS_LOADED = False
 
 
 def register_format(name: str, probe: Callable[[Path], bool], opener: Callable[[Path], Recording]) -> None:
@@ -116,7 +117,12 @@ def register_format(name: str, probe: Callable[[Path], bool], opener: Callable[[
 
 
 def _load_builtin_readers() -> None:
-    # Imported for their register_format side effect; each module is self-contained.
+    # Imported for their register_format side effect; each module is self-contained. A flag, not
+    # "is the list empty", since importing one reader module directly registers that one alone.
+    global _BUILTINS_LOADED
+    if _BUILTINS_LOADED:
+        return
+    _BUILTINS_LOADED = True
     import importlib
 
     for mod in ("canonical", "ecd_text", "h5_datasets", "rosbag", "prophesee_raw", "aedat4"):
@@ -128,8 +134,7 @@ def _load_builtin_readers() -> None:
 
 
 def supported_formats() -> list[str]:
-    if not _FORMATS:
-        _load_builtin_readers()
+    _load_builtin_readers()
     return [f.name for f in _FORMATS]
 
 
@@ -142,8 +147,7 @@ def open_recording(path: str | os.PathLike) -> Recording:
     path = Path(path)
     if not path.exists():
         raise DataError(path, "no such file or folder")
-    if not _FORMATS:
-        _load_builtin_readers()
+    _load_builtin_readers()
     for fmt in _FORMATS:
         if fmt.probe(path):
             return fmt.open(path)

@@ -1,0 +1,152 @@
+"""Keypoint post-processing and matching: the one implementation used by evaluation, export checks
+and the SLAM runtime (numpy + OpenCV, no torch).
+
+The networks' exportable outputs are dense:
+
+* ``scores``: (H, W) float32 keypoint probability (65-way softmax per 8x8 cell, dustbin dropped,
+  depth-to-space to full resolution);
+* ``descriptors``: (D, H/8, W/8) float32 descriptor grid, L2-normalised per cell.
+
+Sparse work stays outside the graph (it does not export well and differs per deployment): non-maximum
+suppression, threshold or top-k, bilinear descriptor sampling with re-normalisation, optional int8
+quantisation, and mutual-nearest-neighbour matching by cosine similarity.
+
+Pixel convention: ``xy[:, 0]`` is the column, ``xy[:, 1]`` the row, integer values at pixel centres.
+The descriptor of grid cell (i, j) describes pixel (8 j + 3.5, 8 i + 3.5), the centre of its cell.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+CELL = 8
+
+
+@dataclass
+class Keypoints:
+    """Sparse keypoints of one image.
+
+    Attributes:
+        xy: (N, 2) float32 pixel coordinates (x = column, y = row).
+        scores: (N,) float32 detector probability.
+        descriptors: (N, D) float32 L2-normalised, or int8 quantised (see :func:`quantize_descriptors`).
+    """
+
+    xy: np.ndarray
+    scores: np.ndarray
+    descriptors: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.xy)
+
+
+def nms_mask(scores: np.ndarray, radius: int = 2, threshold: float = 0.0) -> np.ndarray:
+    """Local maxima of ``scores`` in a (2r+1)^2 window that exceed ``threshold``: bool (H, W).
+
+    Ties (plateaus) keep every maximal pixel; top-k then chooses among them.
+    """
+    kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    dilated = cv2.dilate(np.ascontiguousarray(scores, np.float32), kernel)
+    return (scores >= dilated) & (scores > threshold)
+
+
+def sample_descriptors(grid: np.ndarray, xy: np.ndarray, cell: int = CELL) -> np.ndarray:
+    """Bilinearly interpolate a descriptor grid at pixel positions and L2-normalise.
+
+    Args:
+        grid: (D, Hc, Wc) descriptor grid.
+        xy: (N, 2) pixel coordinates.
+    Returns:
+        (N, D) float32 unit vectors.
+    """
+    D, Hc, Wc = grid.shape
+    if len(xy) == 0:
+        return np.zeros((0, D), np.float32)
+    u = np.clip((xy[:, 0] - (cell - 1) / 2) / cell, 0, Wc - 1)
+    v = np.clip((xy[:, 1] - (cell - 1) / 2) / cell, 0, Hc - 1)
+    u0 = np.minimum(np.floor(u).astype(np.int64), Wc - 2) if Wc > 1 else np.zeros(len(u), np.int64)
+    v0 = np.minimum(np.floor(v).astype(np.int64), Hc - 2) if Hc > 1 else np.zeros(len(v), np.int64)
+    du, dv = (u - u0).astype(np.float32), (v - v0).astype(np.float32)
+    u1, v1 = np.minimum(u0 + 1, Wc - 1), np.minimum(v0 + 1, Hc - 1)
+    flat = grid.reshape(D, -1)
+    desc = (
+        flat[:, v0 * Wc + u0] * ((1 - du) * (1 - dv))
+        + flat[:, v0 * Wc + u1] * (du * (1 - dv))
+        + flat[:, v1 * Wc + u0] * ((1 - du) * dv)
+        + flat[:, v1 * Wc + u1] * (du * dv)
+    ).T
+    norm = np.linalg.norm(desc, axis=1, keepdims=True)
+    return (desc / np.maximum(norm, 1e-12)).astype(np.float32)
+
+
+def extract_keypoints(
+    scores: np.ndarray,
+    descriptor_grid: np.ndarray,
+    *,
+    nms_radius: int = 2,
+    threshold: float = 0.01,
+    top_k: int | None = None,
+    border: int = 4,
+    cell: int = CELL,
+) -> Keypoints:
+    """Dense network outputs of one image -> sparse keypoints.
+
+    Args:
+        scores: (H, W) keypoint probability.
+        descriptor_grid: (D, H/cell, W/cell) descriptor grid.
+        nms_radius: NMS window is (2 r + 1)^2 (r = 2: the 5x5 max-pool of SuperPoint/SuperEvent).
+        threshold: minimum probability (SuperEvent's 0.01); 0 keeps every local maximum.
+        top_k: keep the k highest-scoring (the evaluation protocol uses max(H, W) / 2).
+        border: drop keypoints closer than this to the image border (descriptors are unreliable there).
+    """
+    scores = np.asarray(scores, np.float32)
+    mask = nms_mask(scores, nms_radius, threshold)
+    if border > 0:
+        mask[:border], mask[-border:], mask[:, :border], mask[:, -border:] = False, False, False, False
+    ys, xs = np.nonzero(mask)
+    s = scores[ys, xs]
+    if top_k is not None and len(s) > top_k:
+        keep = np.argpartition(-s, top_k - 1)[:top_k]
+        ys, xs, s = ys[keep], xs[keep], s[keep]
+    order = np.argsort(-s, kind="stable")
+    xy = np.stack([xs[order], ys[order]], axis=1).astype(np.float32)
+    return Keypoints(xy, s[order].astype(np.float32), sample_descriptors(descriptor_grid, xy, cell))
+
+
+def quantize_descriptors(desc: np.ndarray, scale: float) -> np.ndarray:
+    """Symmetric min-max int8 quantisation of unit descriptors: ``round(desc * scale)`` in [-127, 127].
+
+    ``scale`` is derived from training data (127 / the largest absolute component seen); it cancels
+    in cosine similarity, so matching needs only the int8 values.
+    """
+    return np.clip(np.rint(desc * scale), -127, 127).astype(np.int8)
+
+
+def cosine_similarity(desc0: np.ndarray, desc1: np.ndarray) -> np.ndarray:
+    """(N0, N1) cosine similarity of float or int8 descriptors (int8 products accumulate in int32)."""
+    if desc0.dtype == np.int8 or desc1.dtype == np.int8:
+        a, b = desc0.astype(np.int32), desc1.astype(np.int32)
+        dots = (a @ b.T).astype(np.float32)
+        na = np.sqrt((a * a).sum(1)).astype(np.float32)
+        nb = np.sqrt((b * b).sum(1)).astype(np.float32)
+        return dots / np.maximum(na[:, None] * nb[None, :], 1e-12)
+    a = desc0 / np.maximum(np.linalg.norm(desc0, axis=1, keepdims=True), 1e-12)
+    b = desc1 / np.maximum(np.linalg.norm(desc1, axis=1, keepdims=True), 1e-12)
+    return (a @ b.T).astype(np.float32)
+
+
+def mutual_nearest_neighbours(desc0: np.ndarray, desc1: np.ndarray, min_similarity: float | None = None) -> np.ndarray:
+    """Mutual nearest neighbours by cosine similarity: (M, 2) int64 index pairs ``(i0, i1)``."""
+    if len(desc0) == 0 or len(desc1) == 0:
+        return np.zeros((0, 2), np.int64)
+    sim = cosine_similarity(desc0, desc1)
+    nn01 = sim.argmax(1)
+    nn10 = sim.argmax(0)
+    i0 = np.flatnonzero(nn10[nn01] == np.arange(len(desc0)))
+    pairs = np.stack([i0, nn01[i0]], axis=1)
+    if min_similarity is not None:
+        pairs = pairs[sim[pairs[:, 0], pairs[:, 1]] >= min_similarity]
+    return pairs.astype(np.int64)
