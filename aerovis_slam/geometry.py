@@ -185,9 +185,10 @@ def transform_points(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
 def sample_depth_nearest(depth: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Depth map (H, W) at pixels (N, 2), nearest pixel; NaN outside the image."""
     H, W = depth.shape
-    u = np.rint(xy[:, 0]).astype(np.int64, copy=False) if len(xy) else np.zeros(0, np.int64)
-    v = np.rint(xy[:, 1]).astype(np.int64, copy=False) if len(xy) else np.zeros(0, np.int64)
     finite = np.isfinite(xy).all(axis=1)
+    safe = np.where(finite[:, None], xy, -1.0)  # NaN/inf would overflow the integer cast
+    u = np.rint(safe[:, 0]).astype(np.int64)
+    v = np.rint(safe[:, 1]).astype(np.int64)
     inside = finite & (u >= 0) & (u < W) & (v >= 0) & (v < H)
     out = np.full(len(xy), np.nan)
     out[inside] = depth[v[inside], u[inside]]
@@ -217,8 +218,9 @@ def warp_pixels(
     Returns:
         xy1 (N, 2) warped pixels and visible (N,) bool (finite depth, in front, inside, not occluded).
     """
-    pts1 = transform_points(T_1_0, unproject(xy0, depth0, K0))
-    xy1, z1 = project(pts1, K1)
+    with np.errstate(invalid="ignore", over="ignore"):  # no-surface pixels have infinite depth
+        pts1 = transform_points(T_1_0, unproject(xy0, depth0, K0))
+        xy1, z1 = project(pts1, K1)
     valid = np.isfinite(depth0) & (depth0 > 0) & (z1 > 0) & np.isfinite(xy1).all(axis=1)
     if depth1 is not None:
         image_size1 = (depth1.shape[1], depth1.shape[0])

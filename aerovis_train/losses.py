@@ -1,0 +1,100 @@
+"""Training losses of the keypoint networks (SuperPoint heritage).
+
+* Detector: 65-class cross-entropy per 8x8 cell (64 positions + dustbin).
+* Descriptor: hinge loss on the dense grid, positives pulled above ``pos_margin`` (1) and negatives
+  pushed below ``neg_margin`` (0.2) in cosine similarity. The positive and negative terms are each
+  averaged over their own pairs and mixed by ``pos_weight`` (0.5): about one cell pair in a thousand
+  is positive, and separate means keep the balance independent of the image size (SuperPoint's
+  lambda_d = 250 does the same job for one fixed size).
+* Total = det0 + det1 + ``desc_weight`` (10) * desc.
+
+Targets come from :mod:`aerovis_train.correspondences`: with depth, cell centres warped into the
+other view; with poses alone, epipolar lines (multiple-instance positive: the most similar cell near
+the line must match, cells far from it are negatives).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def detector_loss(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+    """Cross-entropy of (B, 65, Hc, Wc) logits against (B, Hc, Wc) int64 labels (-100 = ignore)."""
+    return F.cross_entropy(logits, labels, ignore_index=-100)
+
+
+def _cell_centres(hc: int, wc: int, cell: int, device) -> torch.Tensor:
+    ys, xs = torch.meshgrid(torch.arange(hc, device=device), torch.arange(wc, device=device), indexing="ij")
+    return torch.stack([xs.reshape(-1), ys.reshape(-1)], 1).float() * cell + (cell - 1) / 2
+
+
+def _hinge(sim, pos, neg, pos_margin, neg_margin, pos_weight):
+    zero = sim.new_zeros(())
+    lp = F.relu(pos_margin - sim)[pos].mean() if bool(pos.any()) else zero
+    ln = F.relu(sim - neg_margin)[neg].mean() if bool(neg.any()) else zero
+    return pos_weight * lp + (1 - pos_weight) * ln
+
+
+def descriptor_loss_depth(
+    desc0: torch.Tensor,
+    desc1: torch.Tensor,
+    warped01: torch.Tensor,
+    *,
+    cell: int = 8,
+    pos_px: float = 6.0,
+    neg_px: float = 12.0,
+    pos_margin: float = 1.0,
+    neg_margin: float = 0.2,
+    pos_weight: float = 0.5,
+) -> torch.Tensor:
+    """Dense hinge loss with depth-warped cell centres.
+
+    Args:
+        desc0, desc1: (B, D, Hc, Wc) L2-normalised descriptor grids.
+        warped01: (B, Hc*Wc, 2) where each view-0 cell centre lands in view 1 (NaN: invisible).
+        pos_px: cells of view 1 whose centre is within this of the warped point are positives (6 px:
+            the nearest cell centre is at most 4*sqrt(2) = 5.7 px away, so a visible point always has one).
+        neg_px: beyond this, negatives; in between ignored. Invisible cells are negatives to all.
+    """
+    B, D, hc, wc = desc1.shape
+    centres = _cell_centres(hc, wc, cell, desc0.device)
+    w = torch.nan_to_num(warped01, nan=1e9)
+    dist = torch.cdist(w, centres.unsqueeze(0).expand(B, -1, -1))  # (B, N0, N1)
+    pos = dist <= pos_px
+    neg = dist > neg_px
+    sim = torch.einsum("bdn,bdm->bnm", desc0.flatten(2), desc1.flatten(2))
+    return _hinge(sim, pos, neg, pos_margin, neg_margin, pos_weight)
+
+
+def descriptor_loss_epipolar(
+    desc0: torch.Tensor,
+    desc1: torch.Tensor,
+    lines01: torch.Tensor,
+    *,
+    cell: int = 8,
+    pos_px: float = 4.0,
+    neg_px: float = 12.0,
+    pos_margin: float = 1.0,
+    neg_margin: float = 0.2,
+    pos_weight: float = 0.5,
+) -> torch.Tensor:
+    """Pose-only hinge loss: cells far (> neg_px) from a cell's epipolar line are negatives; the most
+    similar cell within ``pos_px`` of the line is pulled towards it (the true match lies on the line).
+
+    Args:
+        lines01: (B, Hc*Wc, 3) normalised epipolar lines in view 1 of view-0 cell centres.
+    """
+    B, D, hc, wc = desc1.shape
+    centres = _cell_centres(hc, wc, cell, desc0.device)
+    h = torch.cat([centres, torch.ones_like(centres[:, :1])], 1)  # (N1, 3)
+    dist = torch.einsum("bnk,mk->bnm", lines01, h).abs()
+    sim = torch.einsum("bdn,bdm->bnm", desc0.flatten(2), desc1.flatten(2))
+    near = dist <= pos_px
+    neg = dist > neg_px
+    best = sim.masked_fill(~near, -2.0).amax(2)  # (B, N0), -2 where no cell is near the line
+    has = near.any(2)
+    zero = sim.new_zeros(())
+    lp = F.relu(pos_margin - best[has]).mean() if bool(has.any()) else zero
+    ln = F.relu(sim - neg_margin)[neg].mean() if bool(neg.any()) else zero
+    return pos_weight * lp + (1 - pos_weight) * ln

@@ -1,0 +1,89 @@
+"""The Lightning module: keypoint network, pose-supervised losses, relative-pose AUC validation."""
+
+from __future__ import annotations
+
+import lightning as L
+import torch
+
+from .eval.learned import TorchDetector
+from .losses import descriptor_loss_depth, descriptor_loss_epipolar, detector_loss
+from .models import build_model
+
+
+class KeypointModule(L.LightningModule):
+    """Trains a :class:`~aerovis_train.models.keypoint_net.KeypointNet`.
+
+    Args:
+        cfg: the resolved run config as a plain dict (``model``, ``loss``, ``optim``, ``val``); saved in
+            every checkpoint so a checkpoint alone rebuilds the model.
+    """
+
+    def __init__(self, cfg: dict):
+        super().__init__()
+        self.save_hyperparameters({"cfg": cfg})
+        self.cfg = cfg
+        self.model = build_model(cfg["model"])
+        self.skipped_nonfinite = 0
+        self._val_pairs: list[dict] = []
+
+    def forward(self, x):
+        return self.model(x)
+
+    # -- training ---------------------------------------------------------------------------
+    def _losses(self, batch) -> dict[str, torch.Tensor]:
+        lc = self.cfg["loss"]
+        b = batch["mcts0"].shape[0]
+        out = self.model(torch.cat([batch["mcts0"], batch["mcts1"]]))
+        logits0, logits1 = out["logits"][:b], out["logits"][b:]
+        desc0, desc1 = out["descriptors"][:b], out["descriptors"][b:]
+        kw = dict(pos_margin=lc["pos_margin"], neg_margin=lc["neg_margin"], pos_weight=lc["pos_weight"])
+        if "warp01" in batch:
+            kw.update(pos_px=lc["pos_px"], neg_px=lc["neg_px"])
+            desc = 0.5 * (descriptor_loss_depth(desc0, desc1, batch["warp01"], **kw) + descriptor_loss_depth(desc1, desc0, batch["warp10"], **kw))
+        else:
+            kw.update(pos_px=lc["epipolar_pos_px"], neg_px=lc["neg_px"])
+            desc = 0.5 * (descriptor_loss_epipolar(desc0, desc1, batch["lines01"], **kw) + descriptor_loss_epipolar(desc1, desc0, batch["lines10"], **kw))
+        det0, det1 = detector_loss(logits0, batch["labels0"]), detector_loss(logits1, batch["labels1"])
+        total = det0 + det1 + lc["desc_weight"] * desc
+        return {"loss": total, "det0": det0, "det1": det1, "desc": desc}
+
+    def training_step(self, batch, batch_idx):
+        for key in ("mcts0", "mcts1"):
+            if not torch.isfinite(batch[key]).all():
+                raise ValueError(f"non-finite values in batch {batch_idx} ({key}); the data pipeline should have rejected them")
+        losses = self._losses(batch)
+        if not torch.isfinite(losses["loss"]):
+            # a diverging step is skipped and counted (logged as train/skipped_nonfinite), never averaged in
+            self.skipped_nonfinite += 1
+            self.log("train/skipped_nonfinite", float(self.skipped_nonfinite))
+            if self.skipped_nonfinite > self.cfg["optim"].get("max_nonfinite_steps", 10):
+                raise FloatingPointError(f"loss was non-finite in {self.skipped_nonfinite} steps ({ {k: float(v) for k, v in losses.items()} }); "
+                                         "lower optim.lr or check the data")
+            return None
+        self.log_dict({f"train/{k}": v for k, v in losses.items()}, prog_bar=False, batch_size=batch["mcts0"].shape[0])
+        self.log("loss", losses["loss"], prog_bar=True, logger=False, batch_size=batch["mcts0"].shape[0])
+        return losses["loss"]
+
+    def configure_optimizers(self):
+        return torch.optim.Adam(self.model.parameters(), lr=self.cfg["optim"]["lr"])
+
+    # -- validation: the relative-pose protocol on held-out sequences ------------------------
+    def validation_step(self, path, batch_idx):
+        from .eval.pose import evaluate_sequence
+
+        vc = self.cfg["val"]
+        det = TorchDetector(self.model, self.cfg["model"], device=self.device)
+        result = evaluate_sequence(path, det, cam=vc.get("cam", "cam0"), mcts_kind=det.mcts_kind, mcts_params=det.mcts_params,
+                                   rate_hz=vc["rate_hz"], max_pairs=vc["max_pairs"], progress=False)
+        self._val_pairs.extend(result["per_pair"])
+
+    def on_validation_epoch_end(self):
+        from .eval.pose import summarize
+
+        if not self._val_pairs:
+            return
+        s = summarize(self._val_pairs)
+        self.log_dict({"val/auc5": s["auc5"], "val/auc10": s["auc10"], "val/auc20": s["auc20"], "val/auc10_max": s["auc10_max"],
+                       "val/pairs": float(s["pairs"]), "val/matches": s["matches"]}, prog_bar=False)
+        self.log("val_auc10", s["auc10"], prog_bar=True, logger=False)
+        self._val_pairs = []

@@ -1,0 +1,142 @@
+"""The training job behind ``python train.py``: data, module, callbacks, trainer, summary.
+
+Resuming: a run directory that already holds ``checkpoints/last.ckpt`` continues from it (run the
+same command with ``hydra.run.dir=<that directory>``); ``last.ckpt`` is refreshed every
+``checkpoint_every_min`` minutes and at the end of each validation, so an interruption loses at most
+that much work. ``best.ckpt`` (highest validation AUC@10) is written atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from datetime import timedelta
+from pathlib import Path
+
+import lightning as L
+import torch
+from lightning.pytorch.callbacks import Callback, ModelCheckpoint, TQDMProgressBar
+from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger
+from omegaconf import DictConfig, OmegaConf
+
+from aerovis_slam.errors import DataError
+
+from .checkpoints import AtomicCheckpointIO, save_slim
+from .data import EventPairDataset, make_loader, mcts_spec_from_config
+from .models import count_parameters
+from .module import KeypointModule
+
+
+class _EpochSetter(Callback):
+    """Gives the dataset the epoch number so random pairs differ between epochs, reproducibly."""
+
+    def __init__(self, dataset: EventPairDataset):
+        self.dataset = dataset
+
+    def on_train_epoch_start(self, trainer, pl_module):
+        self.dataset.set_epoch(trainer.current_epoch)
+
+
+def sequences_from_config(data_cfg) -> tuple[list[Path], list[Path]]:
+    """(train paths, validation paths) from ``cfg.data``: a simulator preset (generated on first use
+    into the cache) or explicit lists/folders of canonical sequences."""
+    if data_cfg.get("preset"):
+        from aerovis_slam.sim.cache import ensure_preset
+
+        folder = ensure_preset(data_cfg.preset, data_cfg.get("cache_dir"), seed=int(data_cfg.get("seed", 0)))
+        paths = sorted(Path(folder).glob("*.h5"))
+        n_val = int(data_cfg.get("val_sequences", 2))
+        if len(paths) <= n_val:
+            raise DataError(folder, f"preset {data_cfg.preset!r} has {len(paths)} sequences; need more than data.val_sequences={n_val}")
+        return paths[:-n_val], paths[-n_val:]
+
+    def expand(items):
+        out = []
+        for item in items or []:
+            p = Path(str(item)).expanduser()
+            out.extend(sorted(p.glob("*.h5")) if p.is_dir() else [p])
+        return out
+
+    train, val = expand(data_cfg.get("train")), expand(data_cfg.get("val"))
+    if not train:
+        raise DataError(None, "data.train lists no sequences (give .h5 files or folders of them)")
+    for p in train + val:
+        if not p.exists():
+            raise DataError(p, "training sequence not found")
+    return train, val
+
+
+def train(cfg: DictConfig) -> float:
+    """Run one training job; returns the best validation AUC@10 (what a sweep optimises)."""
+    t_start = time.time()
+    L.seed_everything(int(cfg.seed), workers=True)
+    torch.set_num_threads(int(cfg.get("torch_threads") or torch.get_num_threads()))
+    run_dir = Path(cfg.run_dir)
+    ckpt_dir = run_dir / "checkpoints"
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+
+    train_paths, val_paths = sequences_from_config(cfg.data)
+    spec = mcts_spec_from_config(cfg.model.mcts)
+    crop = tuple(cfg.data.crop) if cfg.data.get("crop") else None
+    multiple = 40 if cfg.model.encoder == "maxvit" else 8
+    if crop is not None and (crop[0] % multiple or crop[1] % multiple):
+        raise DataError(None, f"data.crop={list(crop)} must be a multiple of {multiple} for encoder {cfg.model.encoder}")
+    dataset = EventPairDataset(
+        train_paths, spec, crop=crop, max_gap_frames=int(cfg.data.max_gap_frames), stereo_fraction=float(cfg.data.stereo_fraction),
+        supervision=str(cfg.data.supervision), samples_per_epoch=int(cfg.data.samples_per_epoch), seed=int(cfg.seed))
+    loader = make_loader(dataset, int(cfg.data.batch_size), int(cfg.data.num_workers), shuffle=True)
+    val_loader = torch.utils.data.DataLoader([str(p) for p in val_paths], batch_size=None)
+
+    module = KeypointModule(OmegaConf.to_container(cfg, resolve=True))
+    best_cb = ModelCheckpoint(dirpath=ckpt_dir, filename="best", monitor="val/auc10", mode="max", save_top_k=1, save_last=True)
+    periodic_cb = ModelCheckpoint(dirpath=ckpt_dir, filename="periodic", save_top_k=0, save_last=True,
+                                  train_time_interval=timedelta(minutes=float(cfg.checkpoint_every_min)))
+    loggers = [CSVLogger(run_dir, name="logs", version=""), TensorBoardLogger(run_dir, name="tensorboard", version="")]
+    trainer = L.Trainer(
+        **OmegaConf.to_container(cfg.trainer, resolve=True),
+        default_root_dir=run_dir,
+        logger=loggers,
+        callbacks=[best_cb, periodic_cb, _EpochSetter(dataset), TQDMProgressBar(refresh_rate=1)],
+        plugins=[AtomicCheckpointIO()],
+        num_sanity_val_steps=0,
+        deterministic=False,
+    )
+    last = ckpt_dir / "last.ckpt"
+    resume = last if (cfg.get("resume", True) and last.exists()) else None
+    if resume:
+        print(f"resuming from {resume}")
+    trainer.fit(module, loader, val_loader, ckpt_path=str(resume) if resume else None)
+
+    best_auc = float(best_cb.best_model_score) if best_cb.best_model_score is not None else float("nan")
+    best_path = best_cb.best_model_path or str(last)
+    slim = None
+    if best_path and Path(best_path).exists():
+        ckpt = torch.load(best_path, map_location="cpu", weights_only=False)
+        state = {k[len("model."):]: v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
+        slim = save_slim(module.cfg["model"], state, run_dir / "model.pt",
+                         meta={"val_auc10": best_auc, "seed": int(cfg.seed), "data": OmegaConf.to_container(cfg.data, resolve=True),
+                               "global_step": int(ckpt.get("global_step", 0))})
+    summary = {
+        "model": cfg.model.name,
+        "best_val_auc10": best_auc,
+        "best_checkpoint": best_path,
+        "weights": str(slim) if slim else None,
+        "steps": int(trainer.global_step),
+        "epochs": int(trainer.current_epoch),
+        "parameters": count_parameters(module.model),
+        "skipped_nonfinite_steps": module.skipped_nonfinite,
+        "train_sequences": len(train_paths),
+        "val_sequences": len(val_paths),
+        "wall_s": round(time.time() - t_start, 1),
+        "run_dir": str(run_dir),
+        "config": str(run_dir / "config.yaml"),
+        "logs": str(run_dir / "logs"),
+    }
+    tmp = run_dir / "summary.json.partial"
+    tmp.write_text(json.dumps(summary, indent=2))
+    tmp.replace(run_dir / "summary.json")
+    print(f"\n{cfg.model.name}: best val AUC@10 {best_auc:.2f} % after {summary['steps']} steps ({summary['wall_s']:.0f} s)")
+    print(f"  weights     {summary['weights']}\n  checkpoint  {best_path}\n  config      {summary['config']}\n"
+          f"  logs        {summary['logs']} (tensorboard: {run_dir / 'tensorboard'})\n  summary     {run_dir / 'summary.json'}")
+    return best_auc
