@@ -1,0 +1,158 @@
+"""Supervision with known answers (correspondences, labels, losses) and the training job itself
+(every model config for a few steps on the `tiny` preset, resume, bad input)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch", reason="training needs the train extra (torch)")
+
+from aerovis_slam import geometry as geo  # noqa: E402
+from aerovis_train.correspondences import (  # noqa: E402
+    IGNORE,
+    UNMATCHED,
+    ViewGeometry,
+    cell_centres,
+    grid_targets_depth,
+    keypoint_matches_depth,
+    keypoint_matches_epipolar,
+)
+from aerovis_train.labels import cell_labels, cross_view_consistent  # noqa: E402
+from aerovis_train.losses import descriptor_loss_depth, descriptor_loss_epipolar, detector_loss  # noqa: E402
+
+from conftest import REPO_ROOT  # noqa: E402
+
+K = np.array([[100.0, 0, 47.5], [0, 100, 31.5], [0, 0, 1]])
+W, H = 96, 64
+
+
+def wall_views(tx=0.1, depth=2.0):
+    """Two cameras facing a fronto-parallel wall at `depth` m; camera 1 is `tx` m to the right."""
+    T1 = np.eye(4)
+    T1[0, 3] = tx
+    d = np.full((H, W), depth)
+    return ViewGeometry(K, np.eye(4), d, (W, H)), ViewGeometry(K, T1, d.copy(), (W, H))
+
+
+def test_depth_matches_known_shift():
+    v0, v1 = wall_views(tx=0.1, depth=2.0)  # disparity f * b / z = 5 px to the left
+    xy0 = np.array([[30.0, 20.0], [60.0, 40.0], [3.0, 10.0], [70.0, 10.0]])
+    xy1 = np.array([[55.0, 40.0], [25.0, 20.0], [80.0, 50.0]])  # (60,40) and (30,20) shifted by -5 px, one distractor
+    m = keypoint_matches_depth(xy0, xy1, v0, v1, pos_px=3, neg_px=5)
+    assert m[0] == 1 and m[1] == 0
+    assert m[2] == IGNORE  # (3, 10) moves to (-2, 10): outside view 1, no label either way
+    assert m[3] == UNMATCHED  # visible at (65, 10) and nothing within 5 px there
+    # grid: each cell centre lands exactly 5 px to the left
+    warped, vis = grid_targets_depth(v0, v1)
+    c = cell_centres(H, W)
+    ok = c[:, 0] - 5 > -0.5
+    np.testing.assert_allclose(warped[ok], c[ok] - [5, 0], atol=1e-5)
+    assert (vis == ok).all()
+
+
+def test_occlusion_hides_points():
+    v0, v1 = wall_views(tx=0.1, depth=2.0)
+    v1.depth[:, :] = 1.0  # something at 1 m in front of the wall in view 1
+    m = keypoint_matches_depth(np.array([[30.0, 20.0]]), np.array([[25.0, 20.0]]), v0, v1)
+    assert m[0] == IGNORE
+
+
+def test_epipolar_matches_and_labels():
+    v0, v1 = wall_views(tx=0.1)
+    # pure sideways motion: epipolar lines are the image rows
+    xy0 = np.array([[30.0, 20.0], [30.0, 45.0]])
+    xy1 = np.array([[12.0, 20.0], [50.0, 55.0]])
+    m = keypoint_matches_epipolar(xy0, xy1, v0, v1, pos_px=2, neg_px=6)
+    assert m[0] == 0  # same row, whatever the disparity
+    assert m[1] == UNMATCHED  # rows 45 vs 20/55: > 6 px from every line
+    rng = np.random.default_rng(0)
+    labels = cell_labels(np.array([[9.0, 2.0], [40.0, 17.0]]), H, W, rng)
+    assert labels.shape == (8, 12) and labels[0, 1] == 2 * 8 + 1 and labels[2, 5] == 1 * 8 + 0
+    assert (labels == 64).sum() == 8 * 12 - 2
+    keep = cross_view_consistent(np.array([[30.0, 20.0], [60.0, 40.0]]), np.array([[25.5, 20.0]]), v0, v1, radius_px=2)
+    assert keep.tolist() == [True, False]
+
+
+def test_losses_vanish_for_perfect_predictions():
+    hc, wc = H // 8, W // 8
+    labels = torch.randint(0, 65, (2, hc, wc))
+    logits = torch.nn.functional.one_hot(labels, 65).permute(0, 3, 1, 2).float() * 50
+    assert float(detector_loss(logits, labels)) < 1e-6
+    # descriptors: view 1 is view 0 shifted by one cell; orthogonal one-hot codes per cell
+    n = hc * wc
+    codes = torch.eye(n).T.reshape(1, n, hc, wc)  # D = n, cell i has code e_i
+    desc0 = codes
+    desc1 = torch.roll(codes, shifts=-1, dims=3)  # cell (r, c) of view 1 holds code of (r, c + 1) of view 0
+    desc1[..., -1] = 0.0  # the last column would wrap around to codes of column 0, which leaves view 1
+    c = torch.from_numpy(cell_centres(H, W)).float()
+    warped = (c - torch.tensor([8.0, 0.0]))[None]  # view-0 cell centre lands one cell to the left
+    warped[0, c[:, 0] < 8] = float("nan")
+    kw = dict(pos_px=6.0, neg_px=12.0, pos_margin=1.0, neg_margin=0.2, pos_weight=0.5)
+    assert float(descriptor_loss_depth(desc0, desc1, warped, **kw)) < 1e-6
+    # the same descriptors with no relation to the geometry are penalised
+    shuffled = desc1[:, torch.randperm(n)]
+    assert float(descriptor_loss_depth(desc0, shuffled, warped, **kw)) > 0.2
+    # epipolar (pure sideways motion: rows are the lines): identity descriptors satisfy it
+    lines = torch.zeros(1, n, 3)
+    lines[0, :, 1], lines[0, :, 2] = 1.0, -c[:, 1]  # y - y_i = 0
+    assert float(descriptor_loss_epipolar(desc0, desc0, lines, pos_px=4.0, neg_px=12.0)) < 1e-6
+
+
+def _train(tmp_path, *overrides, cache=None):
+    """Run train.py; with ``cache``, on the simulator's `tiny` preset generated there."""
+    sim = ["data.preset=tiny", f"data.cache_dir={cache}", "data.val_sequences=1"] if cache else []
+    cmd = [sys.executable, str(REPO_ROOT / "train.py"), *sim, "data.samples_per_epoch=4", "data.batch_size=2", "data.num_workers=0",
+           "val.max_pairs=3", "val.rate_hz=20", f"hydra.run.dir={tmp_path}", *overrides]
+    return subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path.parent)
+
+
+@pytest.fixture(scope="module")
+def sim_cache(tmp_path_factory):
+    from aerovis_slam.sim.cache import ensure_preset
+
+    cache = tmp_path_factory.mktemp("simcache")
+    ensure_preset("tiny", str(cache), progress=False)
+    return cache
+
+
+@pytest.mark.parametrize("model,crop", [("superlite", "[40,56]"), ("superevent_plus", "[40,40]"), ("superevent", "[40,40]")])
+def test_every_model_config_trains(tmp_path, sim_cache, model, crop):
+    run = tmp_path / "run"
+    res = _train(run, f"model={model}", f"data.crop={crop}", "+trainer.max_steps=2", cache=sim_cache)
+    assert res.returncode == 0, res.stderr[-3000:]
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["model"] == model and summary["steps"] == 2
+    assert (run / "checkpoints" / "last.ckpt").exists() and (run / "model.pt").exists()
+    assert (run / "config.yaml").exists()
+    from aerovis_train.checkpoints import load_model
+
+    net, cfg, meta = load_model(run / "model.pt")
+    assert cfg["name"] == model and len(meta["sha256"]) == 64
+
+
+def test_resume_continues_from_last_checkpoint(tmp_path, sim_cache):
+    run = tmp_path / "run"
+    first = _train(run, "data.crop=[40,56]", "+trainer.max_steps=2", cache=sim_cache)
+    assert first.returncode == 0, first.stderr[-3000:]
+    second = _train(run, "data.crop=[40,56]", "+trainer.max_steps=4", cache=sim_cache)
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert "resuming from" in second.stdout
+    assert json.loads((run / "summary.json").read_text())["steps"] == 4  # 2 restored + 2 new, not 4 new
+
+
+def test_bad_training_input_is_explained(tmp_path, sim_cache):
+    res = _train(tmp_path / "run", "model=superevent_plus", "data.crop=[40,56]", "+trainer.max_steps=1", cache=sim_cache)
+    assert res.returncode == 2 and "must be a multiple of 40" in res.stderr and "Traceback" not in res.stderr
+    from aerovis_slam.io.sequence import SequenceWriter
+    from aerovis_slam.events import EventArray
+
+    nogt = tmp_path / "nogt.h5"
+    with SequenceWriter(nogt, sensor_sizes={"cam0": (64, 48)}) as w:
+        w.add_events("cam0", EventArray([1, 2], [0, 1], [0, 1], [0, 1]))
+    res = _train(tmp_path / "run2", "data=sequences", f"data.train=[{nogt}]", f"data.val=[{nogt}]", "data.crop=[40,56]")
+    assert res.returncode == 2 and "nogt.h5: no /gt poses" in res.stderr
