@@ -60,9 +60,15 @@ def rot_to_quat(R: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
-    """Angle of rotation(s) (..., 3, 3) in degrees, robust near 0 and 180."""
-    cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0)
-    return np.degrees(np.arccos(cos))
+    """Rotation angle in degrees of rotation matrices (..., 3, 3), in [0, 180].
+
+    Uses ``atan2(|axis * sin|, cos)`` rather than ``arccos((trace - 1) / 2)``: the arccos loses
+    all precision below ~0.1 deg, where the small rotation errors of a good estimate live.
+    """
+    R = np.asarray(R, np.float64)
+    cos = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], axis=-1)
+    return np.degrees(np.arctan2(np.linalg.norm(w, axis=-1) / 2.0, cos))
 
 
 def so3_exp(omega: np.ndarray) -> np.ndarray:
@@ -148,6 +154,8 @@ def interpolate_poses(t_query_us: np.ndarray, t_us: np.ndarray, pose7: np.ndarra
     t_query_us = np.atleast_1d(np.asarray(t_query_us, dtype=np.int64))
     if len(t_query_us) and (t_query_us.min() < t_us[0] or t_query_us.max() > t_us[-1]):
         raise ValueError(f"pose query times [{t_query_us.min()}, {t_query_us.max()}] µs outside the samples [{t_us[0]}, {t_us[-1]}] µs")
+    if len(t_us) == 1:
+        return np.repeat(pose7[:1], len(t_query_us), axis=0)
     i1 = np.clip(np.searchsorted(t_us, t_query_us, side="right"), 1, len(t_us) - 1)
     i0 = i1 - 1
     span = (t_us[i1] - t_us[i0]).astype(np.float64)

@@ -1,0 +1,148 @@
+"""``aerovis-eval``: evaluation of keypoint detectors on canonical sequences.
+
+    aerovis-eval pose --data SEQ.h5|DIR (--detector orb|sift|gftt_brief | --model NAME_OR_PATH)
+                      [--cam cam0] [--mcts ne|dt] [--rate-hz 20] [--max-pairs N] [--top-k N]
+                      [--ransac-px PX] [--estimator ransac] [--max-dt-s 2] [--max-angle-deg 45]
+                      [--out FILE.json] [--quiet]
+
+``pose`` runs the SuperEvent relative-pose protocol (:mod:`aerovis_train.eval.pose`). With a
+folder, every ``*.h5`` in it (not recursive) is evaluated and the pairs of all sequences are
+pooled into one AUC, as the published numbers pool a dataset's sequences. It prints ONE JSON
+line on stdout (AUC in percent), a short human summary and tqdm progress on stderr; ``--out``
+writes the same summary plus per-sequence results and per-pair errors.
+
+Bad input (missing file, no GT or calibration, no pair) prints one message naming the file and
+exits with status 2. Only ``--model`` imports the learned-model loader (torch / onnxruntime).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from aerovis_slam.errors import DataError
+
+from .classical import DETECTORS
+from .pose import ESTIMATORS, summarize
+
+PROG = "aerovis-eval"
+
+
+class UsageError(Exception):
+    """A problem with the command line or the environment (message printed, exit status 2)."""
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog=PROG, description="Evaluate event keypoint detectors; each command prints one JSON line.")
+    sub = ap.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("pose", help="relative-pose AUC (SuperEvent protocol) on one sequence or a folder of sequences")
+    p.add_argument("--data", required=True, help="canonical sequence (.h5) or a folder of them (pooled)")
+    which = p.add_mutually_exclusive_group(required=True)
+    which.add_argument("--detector", choices=sorted(DETECTORS), help="classical baseline on the same time surfaces")
+    which.add_argument("--model", help="learned model name or path (aerovis_train.eval.learned.load_detector)")
+    p.add_argument("--cam", default="cam0", help="camera (default cam0)")
+    p.add_argument("--mcts", choices=("ne", "dt"), default=None,
+                   help="time surface: MCTS_Ne or MCTS_dt (default: the model's own, ne for classical detectors)")
+    p.add_argument("--rate-hz", type=float, default=20.0, help="frames per second along the GT (0: at every GT timestamp)")
+    p.add_argument("--max-pairs", type=int, default=None, help="evaluate only the first N pairs of each sequence")
+    p.add_argument("--top-k", type=int, default=None, help="keypoints per frame (default max(H, W) // 2)")
+    p.add_argument("--ransac-px", type=float, default=None, help="RANSAC threshold in px (default 1 up to 346 px wide, else 3)")
+    p.add_argument("--estimator", choices=sorted(ESTIMATORS), default="ransac",
+                   help="essential-matrix estimator (default ransac, the protocol's; usac_accurate refines)")
+    p.add_argument("--max-dt-s", type=float, default=2.0, help="pair window in seconds (protocol: 2)")
+    p.add_argument("--max-angle-deg", type=float, default=45.0, help="largest rotation threshold in degrees (protocol: 45)")
+    p.add_argument("--out", help="write summary, per-sequence and per-pair results to this JSON file")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or human summary")
+    return ap
+
+
+def _sequences(data: str) -> list[Path]:
+    path = Path(data)
+    if path.is_dir():
+        seqs = sorted(p for p in path.glob("*.h5") if p.is_file())
+        if not seqs:
+            raise DataError(path, "folder holds no .h5 sequences")
+        return seqs
+    if not path.exists():
+        raise DataError(path, "no such file or folder")
+    return [path]
+
+
+def _load_model(name_or_path: str):
+    try:
+        from . import learned
+    except ModuleNotFoundError as exc:
+        if exc.name in ("aerovis_train.eval.learned",):
+            raise UsageError("--model needs aerovis_train.eval.learned.load_detector, which does not exist yet in this "
+                             "installation; use --detector for a classical baseline") from None
+        raise UsageError(f"--model: importing aerovis_train.eval.learned failed: {exc}") from None
+    if not hasattr(learned, "load_detector"):
+        raise UsageError("--model: aerovis_train.eval.learned has no load_detector(name_or_path) yet; use --detector")
+    try:
+        return learned.load_detector(name_or_path)
+    except DataError:
+        raise
+    except (OSError, ValueError, KeyError, RuntimeError) as exc:
+        raise UsageError(f"--model {name_or_path}: could not load the model ({type(exc).__name__}: {exc})") from None
+
+
+def _pose(args) -> dict:
+    from .pose import evaluate_sequence
+
+    seqs = _sequences(args.data)
+    if args.detector:
+        detector = args.detector  # built per sequence with that sequence's top-k
+    else:
+        detector = _load_model(args.model)
+    common = dict(cam=args.cam, mcts_kind=args.mcts, rate_hz=None if args.rate_hz == 0 else args.rate_hz,
+                  ransac_px=args.ransac_px, top_k=args.top_k, max_pairs=args.max_pairs, max_dt_s=args.max_dt_s,
+                  max_angle_deg=args.max_angle_deg, estimator=args.estimator, progress=not args.quiet)
+    own_kind = getattr(detector, "mcts_kind", None)
+    if args.mcts and own_kind and args.mcts != own_kind:
+        raise UsageError(f"--mcts {args.mcts}: model {args.model} was trained on MCTS_{own_kind}; leave --mcts out to use it")
+    results = [evaluate_sequence(p, detector, **common) for p in seqs]
+    per_pair = [pp for r in results for pp in r["per_pair"]]
+    frames = np.array([r["frames"] for r in results], np.float64)
+    summary = {"model": results[0]["model"], "data": str(args.data), "sequences": len(results), **summarize(per_pair),
+               # per-frame timings pooled over all frames of all sequences
+               "latency_ms": float(np.average([r["latency_ms"] for r in results], weights=frames)),
+               "mcts_ms": float(np.average([r["mcts_ms"] for r in results], weights=frames)),
+               "frames": int(frames.sum()), "mcts": results[0]["mcts"], "rate_hz": common["rate_hz"], "estimator": args.estimator}
+    for key in ("ransac_px", "top_k", "resolution"):
+        values = {json.dumps(r[key]) for r in results}
+        summary[key] = results[0][key] if len(values) == 1 else [r[key] for r in results]
+    if args.out:
+        out = {"summary": summary, "config": vars(args),
+               "sequences": [{k: v for k, v in r.items()} for r in results]}
+        Path(args.out).write_text(json.dumps(out, indent=1))
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        if args.command == "pose":
+            summary = _pose(args)
+            if not args.quiet:
+                print(f"{summary['model']} on {summary['sequences']} sequence(s): {summary['pairs']} pairs, "
+                      f"rotation AUC@5/10/20 {summary['auc5']:.1f} / {summary['auc10']:.1f} / {summary['auc20']:.1f} %, "
+                      f"max(R,t) {summary['auc5_max']:.1f} / {summary['auc10_max']:.1f} / {summary['auc20_max']:.1f} %, "
+                      f"{summary['matches']:.0f} matches/pair, {summary['latency_ms']:.2f} ms/frame", file=sys.stderr)
+            print(json.dumps(summary))
+            sys.stdout.flush()
+            return 0
+    except (DataError, UsageError) as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted", file=sys.stderr)
+        return 130
+    return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
