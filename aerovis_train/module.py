@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import lightning as L
+from lightning.pytorch.utilities import rank_zero_warn
 import torch
 
 from .eval.learned import TorchDetector
@@ -25,6 +26,7 @@ class KeypointModule(L.LightningModule):
         self.model = build_model(cfg["model"])
         self.skipped_nonfinite = 0
         self._val_pairs: list[dict] = []
+        self._val_unusable: set[str] = set()
 
     def forward(self, x):
         return self.model(x)
@@ -69,18 +71,28 @@ class KeypointModule(L.LightningModule):
 
     # -- validation: the relative-pose protocol on held-out sequences ------------------------
     def validation_step(self, path, batch_idx):
+        from aerovis_slam.errors import DataError
+
         from .eval.pose import evaluate_sequence
 
         vc = self.cfg["val"]
         det = TorchDetector(self.model, self.cfg["model"], device=self.device)
-        result = evaluate_sequence(path, det, cam=vc.get("cam", "cam0"), mcts_kind=det.mcts_kind, mcts_params=det.mcts_params,
-                                   rate_hz=vc["rate_hz"], max_pairs=vc["max_pairs"], progress=False)
+        try:
+            result = evaluate_sequence(path, det, cam=vc.get("cam", "cam0"), mcts_kind=det.mcts_kind, mcts_params=det.mcts_params,
+                                       rate_hz=vc["rate_hz"], max_pairs=vc["max_pairs"], progress=False)
+        except DataError as exc:  # e.g. a validation sequence that never rotates 45 deg: no pairs to score
+            if path not in self._val_unusable:
+                self._val_unusable.add(path)
+                rank_zero_warn(f"validation skips {exc}")
+            return
         self._val_pairs.extend(result["per_pair"])
 
     def on_validation_epoch_end(self):
         from .eval.pose import summarize
 
         if not self._val_pairs:
+            rank_zero_warn("no validation pairs: val/auc10 is 0 (check data.val / val.max_pairs)")
+            self.log("val/auc10", 0.0)
             return
         s = summarize(self._val_pairs)
         self.log_dict({"val/auc5": s["auc5"], "val/auc10": s["auc10"], "val/auc20": s["auc20"], "val/auc10_max": s["auc10_max"],
