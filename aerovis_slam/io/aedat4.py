@@ -21,7 +21,7 @@ import numpy as np
 from ..errors import DataError
 from ..events import EventArray
 from ..measurements import ImuSamples
-from .source import Recording, register_format
+from .source import SingleCameraRecording, register_format
 
 FORMAT_NAME = "aedat4"
 MAGIC = b"#!AER-DAT4.0"
@@ -37,7 +37,7 @@ def _dv(path=None):
     return dv_processing
 
 
-class Aedat4Recording(Recording):
+class Aedat4Recording(SingleCameraRecording):
     """An AEDAT4 file (one camera).
 
     Args:
@@ -76,13 +76,6 @@ class Aedat4Recording(Recording):
         msg = str(exc)
         why = "truncated or corrupt" if ("EndOfFile" in msg or "could not verify" in msg or "FileDataTable" in msg) else "unreadable"
         return DataError(self.path, f"AEDAT4 file is {why} ({msg.splitlines()[-1].strip()[:160]})")
-
-    def cameras(self) -> list[str]:
-        return ["cam0"]
-
-    def sensor_size(self, cam: str) -> tuple[int, int]:
-        self._check_cam(cam)
-        return self._size
 
     def iter_events(self, cam: str = "cam0", chunk_events: int = 1 << 20) -> Iterator[EventArray]:
         """Stream the events, regrouped from DV packets into chunks of about ``chunk_events``.
@@ -185,10 +178,6 @@ class Aedat4Recording(Recording):
         if not t:
             return None
         return np.asarray(t, np.int64), np.asarray(p, np.int8)
-
-    def _check_cam(self, cam: str) -> None:
-        if cam != "cam0":
-            raise DataError(self.path, f"no camera {cam!r}; this reader exposes an AEDAT4 file's camera as 'cam0'")
 
 
 def _probe(path: Path) -> bool:

@@ -30,7 +30,7 @@ from ..errors import DataError
 from ..events import EventArray
 from ..measurements import ImuSamples, PoseSamples
 from .calib_yaml import ECD_IMAGE_SIZE, load_ecd_calib_txt
-from .source import Recording, register_format
+from .source import SingleCameraRecording, register_format
 
 FORMAT_NAME = "ecd-text"
 _BLOCK_BYTES = 1 << 24  # bytes of events.txt parsed per kernel call
@@ -203,7 +203,7 @@ def parse_seconds_to_us(text: str) -> int:
 # ------------------------------------------------------------------------------------------
 # the recording
 # ------------------------------------------------------------------------------------------
-class EcdTextRecording(Recording):
+class EcdTextRecording(SingleCameraRecording):
     """An ECD / rpg text folder (one camera, ``cam0``).
 
     Args:
@@ -220,13 +220,6 @@ class EcdTextRecording(Recording):
         if not self.events_path.is_file():
             raise DataError(self.path, "no events.txt in this folder (expected an ECD/rpg text recording)")
         self._size = (int(sensor_size[0]), int(sensor_size[1]))
-
-    def cameras(self) -> list[str]:
-        return ["cam0"]
-
-    def sensor_size(self, cam: str) -> tuple[int, int]:
-        self._check_cam(cam)
-        return self._size
 
     def iter_events(self, cam: str = "cam0", chunk_events: int = 1 << 20) -> Iterator[EventArray]:
         """Stream ``events.txt`` in chunks of at most ``chunk_events``, checked as it goes.
@@ -343,10 +336,6 @@ class EcdTextRecording(Recording):
             if img is None:
                 raise DataError(path, f"line {lineno}: cannot read image {img_path}")
             yield t, img
-
-    def _check_cam(self, cam: str) -> None:
-        if cam != "cam0":
-            raise DataError(self.path, f"no camera {cam!r}; an ECD text recording has only 'cam0'")
 
 
 def _read_table(path: Path, ncols: int, layout: str) -> tuple[np.ndarray, np.ndarray]:

@@ -25,7 +25,7 @@ import numpy as np
 from ..errors import DataError
 from ..events import EventArray
 from .prophesee_codecs import CodecError, DecodedEvents, make_decoder
-from .source import Recording, register_format
+from .source import SingleCameraRecording, register_format
 
 __all__ = ["PropheseeRawRecording", "PropheseeRawHeader", "read_raw_header"]
 
@@ -121,7 +121,7 @@ def read_raw_header(path: str | Path) -> PropheseeRawHeader:
     return PropheseeRawHeader(fields, encoding, width, height, offset)
 
 
-class PropheseeRawRecording(Recording):
+class PropheseeRawRecording(SingleCameraRecording):
     """A Prophesee RAW file (EVT 2.0 or EVT 3.0), single camera ``cam0``.
 
     Args:
@@ -132,21 +132,11 @@ class PropheseeRawRecording(Recording):
     def __init__(self, path, read_bytes: int = 1 << 22):
         super().__init__(path)
         self.header = read_raw_header(self.path)
+        self._size = (self.header.width, self.header.height)
         self.format_name = f"prophesee-raw-{self.header.encoding}"
         self.read_bytes = int(read_bytes)
         self._triggers: tuple[np.ndarray, np.ndarray] | None = None
         self._scanned = False
-
-    def cameras(self) -> list[str]:
-        return ["cam0"]
-
-    def sensor_size(self, cam: str) -> tuple[int, int]:
-        self._check_cam(cam)
-        return self.header.width, self.header.height
-
-    def _check_cam(self, cam: str) -> None:
-        if cam != "cam0":
-            raise DataError(self.path, f"camera {cam!r} does not exist (a RAW file has only 'cam0')")
 
     def iter_decoded(self) -> Iterator[DecodedEvents]:
         """Decode the body chunk by chunk: sensor-time (µs) CD and trigger events.

@@ -100,6 +100,23 @@ class Recording(ABC):
         self.close()
 
 
+class SingleCameraRecording(Recording):
+    """A recording of one camera, exposed as ``cam0``. Subclasses set ``self._size = (width, height)``."""
+
+    _size: tuple[int, int]
+
+    def cameras(self) -> list[str]:
+        return ["cam0"]
+
+    def sensor_size(self, cam: str) -> tuple[int, int]:
+        self._check_cam(cam)
+        return self._size
+
+    def _check_cam(self, cam: str) -> None:
+        if cam != "cam0":
+            raise DataError(self.path, f"no camera {cam!r}; a {self.format_name} recording has only 'cam0'")
+
+
 @dataclass
 class _Format:
     name: str
