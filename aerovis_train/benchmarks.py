@@ -1,0 +1,70 @@
+"""Training-side benchmarks for ``aerovis-bench`` (one JSON-ready dict each)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import torch
+
+
+def compose_config(overrides: list[str]):
+    """The run config exactly as ``python train.py OVERRIDES`` would compose it (no run directory)."""
+    from hydra import compose, initialize_config_dir
+
+    conf_dir = Path(__file__).resolve().parents[1] / "conf"
+    with initialize_config_dir(config_dir=str(conf_dir), version_base="1.3"):
+        return compose("config", overrides=overrides + ["run_dir=."])
+
+
+def bench_train(models=("superlite", "superevent_plus"), steps: int = 12, warmup: int = 3, overrides: list[str] | None = None) -> dict:
+    """Training throughput with the default data pipeline and the fraction of step time spent waiting
+    for data, per model, measured in one run on the default config (``data=sim``: the `train` preset,
+    generated on first use).
+
+    ``data_wait_fraction`` is the time blocked in ``next(loader)`` over the whole step time: below 20 %
+    means the loader (with ``data.num_workers`` workers) keeps up with the model.
+    """
+    from .data import EventPairDataset, make_loader, mcts_spec_from_config
+    from .module import KeypointModule
+    from .training import sequences_from_config
+
+    result: dict = {"steps": steps}
+    for name in models:
+        overrides_m = [f"model={name}"] + (["data.crop=[160,200]"] if name.startswith("superevent") else []) + list(overrides or [])
+        cfg = compose_config(overrides_m)
+        train_paths, _ = sequences_from_config(cfg.data)
+        ds = EventPairDataset(train_paths, mcts_spec_from_config(cfg.model.mcts), crop=tuple(cfg.data.crop),
+                              max_gap_frames=int(cfg.data.max_gap_frames), stereo_fraction=float(cfg.data.stereo_fraction),
+                              supervision=str(cfg.data.supervision), samples_per_epoch=(steps + warmup) * int(cfg.data.batch_size))
+        loader = make_loader(ds, int(cfg.data.batch_size), int(cfg.data.num_workers), shuffle=True)
+        from omegaconf import OmegaConf
+
+        module = KeypointModule(OmegaConf.to_container(cfg, resolve=True))
+        opt = module.configure_optimizers()
+        it = iter(loader)
+        wait = busy = 0.0
+        for i in range(steps + warmup):
+            t0 = time.perf_counter()
+            batch = next(it)
+            t1 = time.perf_counter()
+            loss = module._losses(batch)["loss"]
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            t2 = time.perf_counter()
+            if i >= warmup:
+                wait += t1 - t0
+                busy += t2 - t1
+        bs = int(cfg.data.batch_size)
+        result[name] = {
+            "samples_per_s": round(steps * bs / (wait + busy), 3),
+            "step_s": round((wait + busy) / steps, 3),
+            "data_wait_fraction": round(wait / (wait + busy), 3),
+            "batch_size": bs,
+            "crop": list(cfg.data.crop),
+            "num_workers": int(cfg.data.num_workers),
+            "torch_threads": torch.get_num_threads(),
+        }
+        del it, loader
+    return result
