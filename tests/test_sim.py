@@ -1,0 +1,424 @@
+"""Tests of the event-camera simulator (aerovis_slam.sim), on tiny rigs and short durations."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import yaml
+
+from aerovis_slam.errors import DataError
+from aerovis_slam.io.sequence import Sequence
+from aerovis_slam.sim import (
+    EventConfig, SequenceSpec, Simulator, ensure_preset, load_rig, make_scene, preset_specs, simulate,
+    video_to_events, write_sequence,
+)
+from aerovis_slam.sim.cli import main as sim_main
+from aerovis_slam.sim.cli import run_preset
+from aerovis_slam.sim.rig import RIG_DIR, available_rigs
+from aerovis_slam.sim.trajectory import Sinusoids, Trajectory
+
+NO_NOISE = EventConfig(noise=False, refractory_us=0)
+
+
+def _exp_so3(w: np.ndarray) -> np.ndarray:
+    th = np.linalg.norm(w)
+    K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    if th < 1e-12:
+        return np.eye(3) + K
+    return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th**2 * K @ K
+
+
+def _log_so3(R: np.ndarray) -> np.ndarray:
+    th = np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return v / 2 if th < 1e-9 else v * th / (2 * np.sin(th))
+
+
+def _quat_to_R(q: np.ndarray) -> np.ndarray:
+    x, y, z, w = q
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def _pose_T(p7: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = _quat_to_R(p7[3:])
+    T[:3, 3] = p7[:3]
+    return T
+
+
+@pytest.fixture(scope="module")
+def tiny_file(tmp_path_factory) -> Path:
+    """One tiny handheld sequence written through the canonical writer."""
+    out = tmp_path_factory.mktemp("simfile") / "tiny.h5"
+    spec = SequenceSpec("tiny", rig="tiny_stereo", scene_seed=5, trajectory="handheld", trajectory_seed=5, speed=2.0,
+                        duration_s=0.5, frame_rate_hz=10, gt_rate_hz=1000, noise_seed=5)
+    write_sequence(spec, out)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# events
+def test_events_sum_to_log_intensity_change():
+    spec = SequenceSpec("ev", rig="tiny_stereo", scene_seed=2, trajectory="handheld", trajectory_seed=2, speed=2.0,
+                        duration_s=0.4, frame_rate_hz=10, events=EventConfig(threshold_sigma=0.03, noise=False, refractory_us=0))
+    sim = Simulator(spec)
+    res = simulate(spec, simulator=sim)
+    assert res.frame_t[-1] == 400_000
+    for cam in sim.cams:
+        gen = sim.generators[cam]
+        ev = res.events[cam]
+        L = np.log(res.radiance[cam].astype(np.float64) + spec.events.eps)
+        h, w = L.shape[1:]
+        signed = np.where(ev.p == 1, gen.c_pos[ev.y, ev.x], -gen.c_neg[ev.y, ev.x])
+        total = np.zeros((h, w))
+        np.add.at(total, (ev.y, ev.x), signed)
+        # Each event moves the pixel's reference by its own threshold, and after the last
+        # render the residual L - ref lies strictly between -C- and +C+ (else another event
+        # would have fired): so the change minus the event sum is within one threshold.
+        residual = (L[-1] - L[0]) - total
+        assert np.all(residual < gen.c_pos + 1e-9) and np.all(residual > -gen.c_neg - 1e-9)
+        assert len(ev) > 1000  # the motion produced a real test
+        # The float32 radiance round trip (renders keep float64 logs) costs < 1e-6 in log.
+        assert np.all(residual == pytest.approx(L[-1] - gen.ref, abs=1e-5))
+
+
+def test_timestamps_sorted_inside_and_refractory():
+    refr = 500
+    spec = SequenceSpec("ts", rig="tiny_stereo", scene_seed=3, trajectory="shake", trajectory_seed=3,
+                        duration_s=0.3, frame_rate_hz=0, events=EventConfig(refractory_us=refr, shot_noise_hz=5.0, leak_hz=2.0))
+    res = simulate(spec)
+    for ev in res.events.values():
+        assert len(ev) > 100
+        assert np.all(np.diff(ev.t) >= 0)
+        assert ev.t[0] >= 0 and ev.t[-1] <= 300_000
+        pix = ev.y.astype(np.int64) * 64 + ev.x
+        order = np.lexsort((ev.t, pix))
+        same = np.diff(pix[order]) == 0
+        assert np.all(np.diff(ev.t[order])[same] >= refr)
+
+
+def test_event_rate_grows_with_speed_and_static_gives_only_noise():
+    def count(kind, speed, events):
+        spec = SequenceSpec("r", rig="tiny_stereo", scene_seed=4, trajectory=kind, trajectory_seed=4, speed=speed,
+                            duration_s=0.5, frame_rate_hz=0, events=events)
+        return simulate(spec).events
+
+    slow = sum(len(e) for e in count("handheld", 0.5, NO_NOISE).values())
+    fast = sum(len(e) for e in count("handheld", 2.0, NO_NOISE).values())
+    assert fast > 2 * slow > 0
+    # A static camera in a static, steadily lit scene renders identical images: no signal.
+    assert sum(len(e) for e in count("static", 1.0, NO_NOISE).values()) == 0
+    noisy = EventConfig(noise=True, shot_noise_hz=2.0, leak_hz=0.0, refractory_us=0)
+    n = sum(len(e) for e in count("static", 1.0, noisy).values())
+    expected = 2.0 * 64 * 48 * 0.5 * 2  # rate x pixels x seconds x cameras = 6144
+    assert abs(n - expected) < 5 * np.sqrt(expected)  # Poisson count: 5 sigma
+
+
+def test_lights_off_gives_off_then_on_events():
+    spec = SequenceSpec("dark", rig="tiny_stereo", scene_seed=8, trajectory="static", duration_s=1.0, frame_rate_hz=0,
+                        lights_off=[(0.2, 0.7)], events=NO_NOISE)
+    ev = simulate(spec).events["cam0"]
+    # The ramps (0.25 s) are C2 smoothsteps from 100 % to 3 % light: log change ~3.5, so
+    # ~17 OFF events per lit pixel around t = 0.2-0.45 s and as many ON around 0.7-0.95 s.
+    off, on = ev.p == 0, ev.p == 1
+    assert off.sum() > 10 * 64 * 48 and abs(int(on.sum()) - int(off.sum())) < 0.05 * off.sum()
+    # Crossing times are interpolated within a render step, and steps grow to max_step_us
+    # where the ramp flattens out: allow one step of slack at either end.
+    slack = spec.max_step_us
+    assert ev.t[off].min() >= 200_000 - slack and ev.t[off].max() <= 450_000 + slack
+    assert ev.t[on].min() >= 700_000 - slack and ev.t[on].max() <= 950_000 + slack
+
+
+def test_video_to_events_tracks_log_intensity():
+    h, w = 8, 12
+    xs = np.arange(w)[None, :]
+    frames = np.stack([np.clip(40 + 180 * (0.5 + 0.5 * np.sin((xs + k) / 2.0 + np.arange(h)[:, None] / 3)), 0, 255) for k in range(6)]).astype(np.uint8)
+    t = np.arange(6) * 10_000
+    cfg = EventConfig(threshold_sigma=0.0, noise=False, refractory_us=0)
+    ev = video_to_events(frames, t, cfg)
+    L = np.log((frames.astype(np.float64) / 255) ** 2.2 + cfg.eps)
+    total = np.zeros((h, w))
+    np.add.at(total, (ev.y, ev.x), np.where(ev.p == 1, 0.2, -0.2))
+    assert np.all(np.abs((L[-1] - L[0]) - total) < 0.2 + 1e-9)
+    assert np.all(np.diff(ev.t) >= 0) and ev.t.min() >= 0 and ev.t.max() <= t[-1]
+
+
+# ---------------------------------------------------------------------------------------------
+# IMU and poses
+def test_imu_integrates_to_gt():
+    rate = 1000.0
+    spec = SequenceSpec("imu", rig="tiny_stereo", scene_seed=6, trajectory="handheld", trajectory_seed=6, speed=2.0,
+                        duration_s=1.0, imu_rate_hz=rate, imu_noise=False, gt_rate_hz=rate)
+    sim = Simulator(spec)
+    imu, gt, traj = sim.imu(), sim.gt(), sim.trajectory
+    assert np.array_equal(imu.t, gt.t)
+    dt = 1.0 / rate
+    T0 = _pose_T(gt.pose[0])
+    R, p, v = T0[:3, :3], T0[:3, 3].copy(), traj.position(np.array([0.0]), 1)[0]
+    g = np.array([0, 0, -9.81])
+    err_p = err_r = 0.0
+    for k in range(len(imu) - 1):
+        a0 = R @ imu.acc[k] + g
+        R1 = R @ _exp_so3(0.5 * (imu.gyro[k] + imu.gyro[k + 1]) * dt)
+        a1 = R1 @ imu.acc[k + 1] + g
+        p = p + v * dt + (2 * a0 + a1) / 6 * dt * dt  # exact for linearly varying acceleration
+        v = v + 0.5 * (a0 + a1) * dt
+        R = R1
+        Tg = _pose_T(gt.pose[k + 1])
+        err_p = max(err_p, np.linalg.norm(p - Tg[:3, 3]))
+        err_r = max(err_r, np.linalg.norm(_log_so3(Tg[:3, :3].T @ R)))
+    # Trapezoidal integration errs by T dt^2 / 12 * max|f''| over a time T: for the rotation
+    # f = omega (plus a commutator term of the same order), for the velocity f = a = p'' (so
+    # f'' = p''''); the position error integrates the velocity error and the acceleration
+    # error |acc| * rotation error. Bounds from the trajectory's analytic derivatives, x10.
+    ts = np.linspace(0, 1, 2001)
+    w = traj.angular_velocity(ts)
+    w2 = np.abs(np.gradient(np.gradient(w, ts, axis=0), ts, axis=0)).max() + np.linalg.norm(w, axis=1).max() ** 3
+    p4 = np.linalg.norm(traj.position(ts, 4), axis=1).max()
+    tol_r = 10 * dt**2 / 12 * w2
+    tol_p = 10 * (dt**2 / 12 * p4 + 0.5 * 20.0 * tol_r / 10)
+    print(f"rotation error {err_r:.2e} rad (bound {tol_r:.2e}), position error {err_p:.2e} m (bound {tol_p:.2e})")
+    assert err_r < tol_r, (err_r, tol_r)
+    assert err_p < tol_p, (err_p, tol_p)
+    assert tol_p < 1e-3 and tol_r < 1e-4  # the bounds are tight enough to mean something
+
+
+def test_gyro_matches_gt_angular_velocity():
+    rate = 1000.0
+    spec = SequenceSpec("gyro", rig="tiny_stereo", scene_seed=7, trajectory="shake", trajectory_seed=7,
+                        duration_s=2.0, imu_rate_hz=rate, imu_noise=False, gt_rate_hz=rate)
+    sim = Simulator(spec)
+    imu, gt = sim.imu(), sim.gt()
+    Rs = [_quat_to_R(q) for q in gt.pose[:, 3:]]
+    w_fd = np.array([_log_so3(Rs[k].T @ Rs[k + 1]) * rate for k in range(len(Rs) - 1)])
+    w_mid = 0.5 * (imu.gyro[:-1] + imu.gyro[1:])
+    peak = np.degrees(np.linalg.norm(imu.gyro, axis=1).max())
+    assert peak > 250  # aggressive shaking: several hundred deg/s
+    # log(R_k^T R_k+1)/dt equals the mean rate over the interval up to O(dt^2 |w''|) terms
+    # (~(2 pi 5 Hz)^2 x 5 rad/s x 1e-6 / 12 ~ 4e-4 rad/s at this shake); 1e-2 leaves margin.
+    assert np.abs(w_fd - w_mid).max() < 1e-2
+
+
+def test_imu_noise_statistics():
+    spec = SequenceSpec("n", rig="tiny_stereo", trajectory="static", duration_s=2.0, imu_rate_hz=1000.0, imu_noise=True)
+    sim = Simulator(spec)
+    exact = Simulator(SequenceSpec("n", rig="tiny_stereo", trajectory="static", duration_s=2.0, imu_rate_hz=1000.0,
+                                   imu_noise=False)).imu()
+    noisy = sim.imu()
+    sd = np.std(np.diff(noisy.gyro - exact.gyro, axis=0), axis=0) / np.sqrt(2)  # white part dominates diffs
+    expected = sim.rig.imu.gyroscope_noise_density * np.sqrt(1000.0)
+    assert np.allclose(sd, expected, rtol=0.1)
+
+
+def test_depth_and_poses_are_consistent(tiny_file):
+    with Sequence(tiny_file) as seq:
+        calib, gt = seq.calib, seq.gt
+        ft = seq.frame_times("cam0", "depth")
+        i, j = 0, len(ft) - 1  # first cam0 frame vs last cam1 frame (0.5 s later)
+        d0 = seq.frame("cam0", i, "depth").astype(np.float64)
+        d1 = seq.frame("cam1", j, "depth").astype(np.float64)
+    c0, c1 = calib.cameras["cam0"], calib.cameras["cam1"]
+    T_w_b0 = _pose_T(gt.pose[np.searchsorted(gt.t, ft[i])])
+    T_w_b1 = _pose_T(gt.pose[np.searchsorted(gt.t, ft[j])])
+    T_w_c0, T_w_c1 = T_w_b0 @ c0.T_imu_cam, T_w_b1 @ c1.T_imu_cam
+    h, w = d0.shape
+    vv, uu = np.mgrid[0:h, 0:w]
+
+    def backproject(d, cam, T):
+        pc = np.stack([(uu - cam.cx) / cam.fx * d, (vv - cam.cy) / cam.fy * d, d], -1)
+        return pc @ T[:3, :3].T + T[:3, 3]
+
+    W1 = backproject(d1, c1, T_w_c1)
+    errs = []
+    for v in range(2, h - 2, 3):
+        for u in range(2, w - 2, 3):
+            X = backproject(d0, c0, T_w_c0)[v, u]
+            pc = np.linalg.inv(T_w_c1) @ np.append(X, 1)
+            q = np.array([c1.fx * pc[0] / pc[2] + c1.cx, c1.fy * pc[1] / pc[2] + c1.cy])
+            u0, v0 = int(np.floor(q[0])), int(np.floor(q[1]))
+            if pc[2] <= 0 or not (1 <= u0 < w - 2 and 1 <= v0 < h - 2):
+                continue
+            # Skip depth edges in either view: there a sub-pixel shift changes the surface.
+            patch0, patch1 = d0[v - 1:v + 2, u - 1:u + 2], d1[v0 - 1:v0 + 3, u0 - 1:u0 + 3]
+            if np.ptp(np.diff(patch0, axis=1)) > 0.01 * d0[v, u] or np.ptp(np.diff(patch1, axis=1)) > 0.01 * d1[v0, u0] \
+                    or np.ptp(np.diff(patch1, axis=0)) > 0.01 * d1[v0, u0]:
+                continue
+            # Find where cam1's back-projected surface reaches X: on a plane, the world point
+            # is a smooth function of the pixel, linear to ~1e-3 px over one pixel.
+            J = np.stack([W1[v0, u0 + 1] - W1[v0, u0], W1[v0 + 1, u0] - W1[v0, u0]], 1)
+            delta, *_ = np.linalg.lstsq(J, X - W1[v0, u0], rcond=None)
+            errs.append(np.linalg.norm(np.array([u0, v0]) + delta - q))
+    errs = np.array(errs)
+    assert len(errs) > 20
+    # float32 depth (7 significant digits) and the local linearisation leave << 0.05 px.
+    assert np.median(errs) < 0.01 and np.percentile(errs, 90) < 0.05
+
+
+def test_file_contents(tiny_file):
+    with Sequence(tiny_file) as seq:
+        s = seq.summary()
+        assert set(s["cameras"]) == {"cam0", "cam1"}
+        for cam in ("cam0", "cam1"):
+            assert s["cameras"][cam]["frames"] == 6 and s["cameras"][cam]["depth"] == 6
+            assert seq.frame(cam, 0).dtype == np.uint8 and seq.frame(cam, 0, "depth").dtype == np.float32
+        assert s["imu"] == 501 and s["gt"] == 501  # tiny rig IMU at 1 kHz, GT at 1 kHz
+        calib = seq.calib
+        assert calib.imu is not None and calib.imu.update_rate == 1000.0
+        assert all(c.distortion_model == "none" for c in calib.cameras.values())
+        assert seq.meta["spec"]["trajectory"] == "handheld"
+
+
+# ---------------------------------------------------------------------------------------------
+# scenes, rigs, trajectories
+def test_rigs_load():
+    assert {"davis240_stereo", "prophesee640_stereo", "drone424", "tiny_stereo"} <= set(available_rigs())
+    drone = load_rig("drone424")
+    c0, c1 = drone.cameras["cam0"], drone.cameras["cam1"]
+    assert (c0.width, c0.height) == (424, 240)
+    assert np.degrees(2 * np.arctan(c0.width / 2 / c0.fx)) == pytest.approx(110, abs=0.5)
+    assert np.linalg.norm(c0.T_imu_cam[:3, 3] - c1.T_imu_cam[:3, 3]) == pytest.approx(0.074)
+
+
+def test_rig_missing_field_names_file_and_field(tmp_path):
+    d = yaml.safe_load((RIG_DIR / "tiny_stereo.yaml").read_text())
+    del d["cameras"]["cam1"]["fx"]
+    bad = tmp_path / "bad_rig.yaml"
+    bad.write_text(yaml.safe_dump(d))
+    with pytest.raises(DataError, match=r"bad_rig\.yaml.*cam1.*'fx'"):
+        load_rig(bad)
+    out = tmp_path / "out"
+    out.mkdir()
+    with pytest.raises(DataError, match="fx"):
+        write_sequence(SequenceSpec("x", rig=str(bad), duration_s=0.1), out / "x.h5")
+    assert list(out.iterdir()) == []
+
+
+def test_scenes_vary_with_seed_and_hdr_spans_decades():
+    a, b = make_scene(10), make_scene(11)
+    assert len(a.planes) != len(b.planes) or not np.allclose(a.room_hi, b.room_hi)
+    hdr = make_scene(12, hdr=True)
+    rad = [hdr.textures[p.texture] * p.gain * (1 if p.emissive else hdr.illumination.ambient) for p in hdr.planes]
+    lo, hi = min(r.min() for r in rad), max(r.max() for r in rad)
+    assert np.log10(hi / lo) > 3.5
+
+
+def test_unreadable_texture_is_reported(tmp_path):
+    bad = tmp_path / "not_an_image.png"
+    bad.write_text("hello")
+    with pytest.raises(DataError, match="not_an_image.png.*cannot read texture"):
+        make_scene(0, user_textures=[bad])
+
+
+def test_trajectory_leaving_the_room_is_an_error():
+    scene = make_scene(1)
+    far = float(scene.room_hi[0]) + 2.0
+    traj = Trajectory("slider", 1.0, [Sinusoids(0.0, far), Sinusoids(0.0), Sinusoids(1.4)], [Sinusoids(0.0)] * 3)
+    with pytest.raises(DataError, match="leaves the free space"):
+        Simulator(SequenceSpec("out", rig="tiny_stereo", duration_s=1.0), scene=scene, trajectory=traj)
+
+
+def test_every_kind_stays_inside_and_bench_names():
+    names = [s.name for s in preset_specs("bench")]
+    for prefix in ("handheld_", "shake_", "spin_hdr_", "drone8_", "slider_"):
+        assert any(n.startswith(prefix) for n in names)
+    for spec in preset_specs("bench") + preset_specs("train")[:12]:
+        sim = Simulator(spec)  # raises if a trajectory leaves the free space
+        if spec.name == "handheld_loop":
+            p = sim.trajectory.pose7(np.array([0.0, spec.duration_s]))
+            assert np.allclose(p[0], p[1], atol=1e-9)
+
+
+# ---------------------------------------------------------------------------------------------
+# CLI, determinism, cache
+def _datasets(path: Path) -> dict:
+    out = {}
+    with h5py.File(path, "r") as f:
+        f.visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
+        out["/calib"] = f["calib"].attrs["json"]
+        out["/meta"] = f.attrs["meta"]
+    return out
+
+
+def test_preset_is_deterministic(tmp_path):
+    a = run_preset("tiny", tmp_path / "a", seed=3, duration=0.2, progress=False)
+    run_preset("tiny", tmp_path / "b", seed=3, duration=0.2, progress=False)
+    assert json.loads((tmp_path / "a" / "summary.json").read_text())["sequences"][0]["events"] > 0
+    for row in a["sequences"]:
+        da, db = _datasets(tmp_path / "a" / row["path"]), _datasets(tmp_path / "b" / row["path"])
+        assert da.keys() == db.keys()
+        for k in da:
+            assert np.array_equal(da[k], db[k]), k
+    c = run_preset("tiny", tmp_path / "c", seed=4, duration=0.2, progress=False)
+    assert c["total_events"] != a["total_events"]
+
+
+def test_cli_errors_are_one_line_and_leave_nothing(tmp_path, capsys):
+    assert sim_main(["nosuchpreset", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "unknown preset 'nosuchpreset'" in err and "Traceback" not in err
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    assert sim_main(["tiny", str(blocker / "sub"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "cannot create output folder" in err and err.count("\n") == 1
+    bad_tex = tmp_path / "broken.jpg"
+    bad_tex.write_bytes(b"\xff\xd8 not really a jpeg")
+    assert sim_main(["tiny", str(tmp_path / "t"), "--quiet", "--textures", str(bad_tex)]) == 2
+    err = capsys.readouterr().err
+    assert "broken.jpg" in err and "cannot read texture" in err and "Traceback" not in err
+    assert not (tmp_path / "t").exists()
+    # A failure after events were written leaves neither the file nor its .partial.
+    out = tmp_path / "crash"
+    out.mkdir()
+
+    def boom(self):
+        raise DataError(None, "simulated failure")
+
+    orig = Simulator.imu
+    Simulator.imu = boom
+    try:
+        with pytest.raises(DataError):
+            write_sequence(SequenceSpec("c", rig="tiny_stereo", duration_s=0.05), out / "c.h5")
+    finally:
+        Simulator.imu = orig
+    assert list(out.iterdir()) == []
+
+
+def test_cli_subprocess_entry_point(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "aerovis_slam.sim.cli", "bench", str(tmp_path), "--only", "nope", "--quiet"],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and "no sequence(s) ['nope']" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_ensure_preset_caches(tmp_path, monkeypatch):
+    monkeypatch.setenv("AEROVIS_CACHE", str(tmp_path / "envcache"))
+    from aerovis_slam.sim import cache
+
+    assert cache.cache_root() == tmp_path / "envcache" / "sim"
+    # Generate the tiny preset, shortened to 0.1 s per sequence to keep the test fast.
+    import aerovis_slam.sim.cli as cli
+
+    orig = cli.run_preset
+    monkeypatch.setattr(cli, "run_preset", lambda name, out, seed=0, progress=True: orig(name, out, seed=seed, duration=0.1, progress=False))
+    p = ensure_preset("tiny", seed=1)
+    assert p == tmp_path / "envcache" / "sim" / "tiny-seed1" and (p / "summary.json").is_file()
+    assert [x.name for x in p.parent.iterdir()] == ["tiny-seed1"]  # no temp folder left
+    t0 = time.perf_counter()
+    assert ensure_preset("tiny", seed=1) == p
+    assert time.perf_counter() - t0 < 0.5
+    q = ensure_preset("tiny", cache_dir=str(tmp_path / "explicit"), seed=1)
+    assert q == tmp_path / "explicit" / "tiny-seed1"
+    with pytest.raises(DataError, match="unknown preset"):
+        ensure_preset("nope", cache_dir=str(tmp_path / "x"))
+    assert not (tmp_path / "x").exists()
