@@ -61,7 +61,14 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _sequences(data: str) -> list[Path]:
+    """A sequence, a folder of sequences, or a simulator preset name (generated on first use)."""
+    from aerovis_slam.sim.presets import PRESETS
+
     path = Path(data)
+    if not path.exists() and data in PRESETS:
+        from aerovis_slam.sim.cache import ensure_preset
+
+        path = ensure_preset(data)
     if path.is_dir():
         seqs = sorted(p for p in path.glob("*.h5") if p.is_file())
         if not seqs:
@@ -73,17 +80,10 @@ def _sequences(data: str) -> list[Path]:
 
 
 def _load_model(name_or_path: str):
+    from .learned import load_detector
+
     try:
-        from . import learned
-    except ModuleNotFoundError as exc:
-        if exc.name in ("aerovis_train.eval.learned",):
-            raise UsageError("--model needs aerovis_train.eval.learned.load_detector, which does not exist yet in this "
-                             "installation; use --detector for a classical baseline") from None
-        raise UsageError(f"--model: importing aerovis_train.eval.learned failed: {exc}") from None
-    if not hasattr(learned, "load_detector"):
-        raise UsageError("--model: aerovis_train.eval.learned has no load_detector(name_or_path) yet; use --detector")
-    try:
-        return learned.load_detector(name_or_path)
+        return load_detector(name_or_path)
     except DataError:
         raise
     except (OSError, ValueError, KeyError, RuntimeError) as exc:
@@ -104,14 +104,25 @@ def _pose(args) -> dict:
     own_kind = getattr(detector, "mcts_kind", None)
     if args.mcts and own_kind and args.mcts != own_kind:
         raise UsageError(f"--mcts {args.mcts}: model {args.model} was trained on MCTS_{own_kind}; leave --mcts out to use it")
-    results = [evaluate_sequence(p, detector, **common) for p in seqs]
+    results, skipped = [], []
+    for p in seqs:
+        try:
+            results.append(evaluate_sequence(p, detector, **common))
+        except DataError as exc:
+            if len(seqs) == 1 or "no frame pairs" not in str(exc):
+                raise
+            skipped.append(str(p))  # in a folder, a sequence without 45 deg of rotation has nothing to score
+            print(f"aerovis-eval: skipping {exc}", file=sys.stderr)
+    if not results:
+        raise DataError(args.data, "no sequence yields frame pairs")
     per_pair = [pp for r in results for pp in r["per_pair"]]
     frames = np.array([r["frames"] for r in results], np.float64)
     summary = {"model": results[0]["model"], "data": str(args.data), "sequences": len(results), **summarize(per_pair),
                # per-frame timings pooled over all frames of all sequences
                "latency_ms": float(np.average([r["latency_ms"] for r in results], weights=frames)),
                "mcts_ms": float(np.average([r["mcts_ms"] for r in results], weights=frames)),
-               "frames": int(frames.sum()), "mcts": results[0]["mcts"], "rate_hz": common["rate_hz"], "estimator": args.estimator}
+               "frames": int(frames.sum()), "mcts": results[0]["mcts"], "rate_hz": common["rate_hz"], "estimator": args.estimator,
+               "skipped": skipped}
     for key in ("ransac_px", "top_k", "resolution"):
         values = {json.dumps(r[key]) for r in results}
         summary[key] = results[0][key] if len(values) == 1 else [r[key] for r in results]
