@@ -485,7 +485,7 @@ def test_cli_pose_file_and_folder(dot_sequence, tmp_path, capsys):
     assert line["model"] == "gftt_brief" and line["pairs"] == 4 and line["sequences"] == 1
     assert {"auc5", "auc10", "auc20", "auc5_max", "matches", "inlier_ratio", "latency_ms"} <= set(line)
     saved = json.loads(out.read_text())
-    assert saved["summary"] == line and len(saved["sequences"][0]["per_pair"]) == 4
+    assert saved["methods"][0]["summary"] == line and len(saved["methods"][0]["sequences"][0]["per_pair"]) == 4
     # a folder pools the pairs of its sequences
     folder = tmp_path / "set"
     folder.mkdir()
@@ -494,8 +494,12 @@ def test_cli_pose_file_and_folder(dot_sequence, tmp_path, capsys):
     assert cli.main(["pose", "--data", str(folder), "--detector", "gftt_brief"] + SMALL_ARGS) == 0
     pooled = json.loads(capsys.readouterr().out.strip())
     assert pooled["sequences"] == 2 and pooled["pairs"] == 8
-    errs = [p["rot_err_deg"] for p in saved["sequences"][0]["per_pair"]]
+    errs = [p["rot_err_deg"] for p in saved["methods"][0]["sequences"][0]["per_pair"]]
     assert [pooled["auc5"], pooled["auc10"], pooled["auc20"]] == pytest.approx(pose_auc(errs + errs))
+    # several methods in one run: one JSON line each, on the same pairs
+    assert cli.main(["pose", "--data", dot_sequence, "--detector", "gftt_brief", "orb"] + SMALL_ARGS) == 0
+    lines = [json.loads(x) for x in capsys.readouterr().out.strip().splitlines()]
+    assert [x["model"] for x in lines] == ["gftt_brief", "orb"] and lines[0]["pairs"] == lines[1]["pairs"] == 4
 
 
 def test_cli_bad_input(tmp_path, capsys):
@@ -509,9 +513,8 @@ def test_cli_bad_input(tmp_path, capsys):
         assert cli.main(["pose", "--data", path, "--detector", "orb", "--max-dt-s", "1", "--max-angle-deg", "10", "--quiet"]) == 2
         err = capsys.readouterr().err
         assert what in err and Path(path).name in err and "Traceback" not in err
-    with pytest.raises(SystemExit) as exc:  # neither --detector nor --model
-        cli.main(["pose", "--data", no_gt])
-    assert exc.value.code == 2
+    assert cli.main(["pose", "--data", no_gt]) == 2  # neither --detector nor --model
+    assert "at least one --model or --detector" in capsys.readouterr().err
 
 
 def test_cli_model_missing(dot_sequence, capsys, tmp_path):

@@ -41,9 +41,10 @@ def _parser() -> argparse.ArgumentParser:
     sub = ap.add_subparsers(dest="command", required=True)
     p = sub.add_parser("pose", help="relative-pose AUC (SuperEvent protocol) on one sequence or a folder of sequences")
     p.add_argument("--data", required=True, help="canonical sequence (.h5) or a folder of them (pooled)")
-    which = p.add_mutually_exclusive_group(required=True)
-    which.add_argument("--detector", choices=sorted(DETECTORS), help="classical baseline on the same time surfaces")
-    which.add_argument("--model", help="learned model name or path (aerovis_train.eval.learned.load_detector)")
+    p.add_argument("--detector", nargs="+", default=[], choices=sorted(DETECTORS),
+                   help="classical baseline(s) on the same time surfaces")
+    p.add_argument("--model", nargs="+", default=[],
+                   help="learned model(s): shipped name (superlite, superevent_plus, superevent), model.pt or train.py .ckpt")
     p.add_argument("--cam", default="cam0", help="camera (default cam0)")
     p.add_argument("--mcts", choices=("ne", "dt"), default=None,
                    help="time surface: MCTS_Ne or MCTS_dt (default: the model's own, ne for classical detectors)")
@@ -90,20 +91,33 @@ def _load_model(name_or_path: str):
         raise UsageError(f"--model {name_or_path}: could not load the model ({type(exc).__name__}: {exc})") from None
 
 
-def _pose(args) -> dict:
-    from .pose import evaluate_sequence
-
+def _pose(args) -> list[dict]:
+    """Every method of the command line on the same sequences and pairs: one summary each."""
+    if not args.detector and not args.model:
+        raise UsageError("give at least one --model or --detector")
     seqs = _sequences(args.data)
-    if args.detector:
-        detector = args.detector  # built per sequence with that sequence's top-k
-    else:
-        detector = _load_model(args.model)
+    methods = [(m, _load_model(m)) for m in args.model] + [(d, d) for d in args.detector]
+    summaries, outputs = [], []
+    for label, detector in methods:
+        summary, results = _pose_one(args, seqs, label, detector)
+        summaries.append(summary)
+        outputs.append({"summary": summary, "sequences": results})
+    if args.out:
+        Path(args.out).write_text(json.dumps({"config": vars(args), "methods": outputs}, indent=1))
+    return summaries
+
+
+def _pose_one(args, seqs: list[Path], label: str, detector) -> tuple[dict, list[dict]]:
+    from .pose import evaluate_sequence
     common = dict(cam=args.cam, mcts_kind=args.mcts, rate_hz=None if args.rate_hz == 0 else args.rate_hz,
                   ransac_px=args.ransac_px, top_k=args.top_k, max_pairs=args.max_pairs, max_dt_s=args.max_dt_s,
                   max_angle_deg=args.max_angle_deg, estimator=args.estimator, progress=not args.quiet)
     own_kind = getattr(detector, "mcts_kind", None)
     if args.mcts and own_kind and args.mcts != own_kind:
-        raise UsageError(f"--mcts {args.mcts}: model {args.model} was trained on MCTS_{own_kind}; leave --mcts out to use it")
+        if args.detector:  # a comparison: --mcts sets the classical detectors' surface, models keep their own
+            common = {**common, "mcts_kind": None}
+        else:
+            raise UsageError(f"--mcts {args.mcts}: model {label} was trained on MCTS_{own_kind}; leave --mcts out to use it")
     results, skipped = [], []
     for p in seqs:
         try:
@@ -126,25 +140,21 @@ def _pose(args) -> dict:
     for key in ("ransac_px", "top_k", "resolution"):
         values = {json.dumps(r[key]) for r in results}
         summary[key] = results[0][key] if len(values) == 1 else [r[key] for r in results]
-    if args.out:
-        out = {"summary": summary, "config": vars(args),
-               "sequences": [{k: v for k, v in r.items()} for r in results]}
-        Path(args.out).write_text(json.dumps(out, indent=1))
-    return summary
+    return summary, results
 
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         if args.command == "pose":
-            summary = _pose(args)
-            if not args.quiet:
-                print(f"{summary['model']} on {summary['sequences']} sequence(s): {summary['pairs']} pairs, "
-                      f"rotation AUC@5/10/20 {summary['auc5']:.1f} / {summary['auc10']:.1f} / {summary['auc20']:.1f} %, "
-                      f"max(R,t) {summary['auc5_max']:.1f} / {summary['auc10_max']:.1f} / {summary['auc20_max']:.1f} %, "
-                      f"{summary['matches']:.0f} matches/pair, {summary['latency_ms']:.2f} ms/frame", file=sys.stderr)
-            print(json.dumps(summary))
-            sys.stdout.flush()
+            for summary in _pose(args):
+                if not args.quiet:
+                    print(f"{summary['model']} on {summary['sequences']} sequence(s): {summary['pairs']} pairs, "
+                          f"rotation AUC@5/10/20 {summary['auc5']:.1f} / {summary['auc10']:.1f} / {summary['auc20']:.1f} %, "
+                          f"max(R,t) {summary['auc5_max']:.1f} / {summary['auc10_max']:.1f} / {summary['auc20_max']:.1f} %, "
+                          f"{summary['matches']:.0f} matches/pair, {summary['latency_ms']:.2f} ms/frame", file=sys.stderr)
+                print(json.dumps(summary))
+                sys.stdout.flush()
             return 0
     except (DataError, UsageError) as exc:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
