@@ -412,13 +412,13 @@ def test_ensure_preset_caches(tmp_path, monkeypatch):
     orig = cli.run_preset
     monkeypatch.setattr(cli, "run_preset", lambda name, out, seed=0, progress=True: orig(name, out, seed=seed, duration=0.1, progress=False))
     p = ensure_preset("tiny", seed=1)
-    assert p == tmp_path / "envcache" / "sim" / "tiny-seed1" and (p / "summary.json").is_file()
-    assert [x.name for x in p.parent.iterdir()] == ["tiny-seed1"]  # no temp folder left
+    assert p == tmp_path / "envcache" / "sim" / "tiny-seed1-v1" and (p / "summary.json").is_file()
+    assert [x.name for x in p.parent.iterdir()] == ["tiny-seed1-v1"]  # no temp folder left
     t0 = time.perf_counter()
     assert ensure_preset("tiny", seed=1) == p
     assert time.perf_counter() - t0 < 0.5
     q = ensure_preset("tiny", cache_dir=str(tmp_path / "explicit"), seed=1)
-    assert q == tmp_path / "explicit" / "tiny-seed1"
+    assert q == tmp_path / "explicit" / "tiny-seed1-v1"
     with pytest.raises(DataError, match="unknown preset"):
         ensure_preset("nope", cache_dir=str(tmp_path / "x"))
     assert not (tmp_path / "x").exists()

@@ -1,7 +1,8 @@
 """Generate a preset once, reuse it afterwards (for the training data module).
 
 The cache root is ``$AEROVIS_CACHE/sim`` when the environment variable is set, else
-``~/.cache/aerovis/sim``; a preset lives in ``<root>/<name>-seed<seed>/``. Generation goes
+``~/.cache/aerovis/sim``; a preset lives in ``<root>/<name>-seed<seed>-v<SIM_VERSION>/`` (a new
+simulator version, which changes the data, regenerates instead of reusing stale files). Generation goes
 into a hidden temporary folder beside it that is renamed when complete, so an interrupted
 run never leaves a folder that looks finished, and two concurrent callers end with one copy.
 
@@ -10,7 +11,7 @@ Example:
     >>> root = tempfile.mkdtemp()
     >>> p = ensure_preset("tiny", cache_dir=root, progress=False)
     >>> p.name, (p / "summary.json").is_file(), ensure_preset("tiny", cache_dir=root) == p
-    ('tiny-seed0', True, True)
+    ('tiny-seed0-v1', True, True)
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ def ensure_preset(name: str, cache_dir: str | None = None, seed: int = 0, *, pro
 
     Args:
         name: preset name (``train``, ``bench``, ``tiny``).
-        cache_dir: folder that holds ``<name>-seed<seed>/`` (default :func:`cache_root`).
+        cache_dir: folder that holds ``<name>-seed<seed>-v<SIM_VERSION>/`` (default :func:`cache_root`).
         seed: preset seed.
         progress: show progress bars while generating.
 
@@ -46,10 +47,11 @@ def ensure_preset(name: str, cache_dir: str | None = None, seed: int = 0, *, pro
     """
     from .cli import run_preset
     from .presets import preset_specs
+    from .simulator import SIM_VERSION
 
     preset_specs(name, seed)  # validate the name before touching the disk
     root = Path(cache_dir).expanduser() if cache_dir is not None else cache_root()
-    final = root / f"{name}-seed{seed}"
+    final = root / f"{name}-seed{seed}-v{SIM_VERSION}"
     if (final / "summary.json").is_file():
         return final
     try:
