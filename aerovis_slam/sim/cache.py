@@ -61,6 +61,7 @@ def ensure_preset(name: str, cache_dir: str | None = None, seed: int = 0, *, pro
         raise DataError(root, f"cache folder is not writable ({exc.strerror})") from None
     try:
         run_preset(name, tmp, seed=seed, progress=progress)
+        os.chmod(tmp, 0o755)  # mkdtemp makes it private; the finished cache is ordinary shared data
         try:
             os.rename(tmp, final)
         except OSError:
