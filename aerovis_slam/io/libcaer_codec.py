@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .prophesee_codecs import _NTH_BIT_FLAT, _POPCOUNT, CodecError, DecodedEvents, _last_setter
+from .prophesee_codecs import _NTH_BIT_FLAT, _POPCOUNT, CodecError, DecodedEvents, _last_setter, _SensorClip
 
 __all__ = ["LibcaerDecoder", "LibcaerCmpDecoder", "ROLLOVER_US"]
 
@@ -39,7 +39,7 @@ __all__ = ["LibcaerDecoder", "LibcaerCmpDecoder", "ROLLOVER_US"]
 ROLLOVER_US = 1 << 31
 
 
-class LibcaerDecoder:
+class LibcaerDecoder(_SensorClip):
     """Decoder of ``libcaer`` packets (uncompressed libcaer polarity events).
 
     Packets are independent (the driver's ``time_base`` carries the clock's high part), so the
@@ -50,10 +50,6 @@ class LibcaerDecoder:
     """
 
     EVENT_BYTES = 8
-
-    def __init__(self, width: int | None = None, height: int | None = None):
-        self.width, self.height = width, height
-        self.n_out_of_bounds = 0
 
     def decode_packet(self, data, time_base_ns: int) -> DecodedEvents:
         """Decode one packet.
@@ -82,15 +78,10 @@ class LibcaerDecoder:
         x = ((data_w >> 17) & 0x7FFF).astype(np.uint16)
         y = ((data_w >> 2) & 0x7FFF).astype(np.uint16)
         p = ((data_w >> 1) & 1).astype(np.int8)
-        if self.width is not None and self.height is not None and len(x):
-            ok = (x < self.width) & (y < self.height)
-            if not ok.all():
-                self.n_out_of_bounds += int(len(ok) - np.count_nonzero(ok))
-                t, x, y, p = t[ok], x[ok], y[ok], p[ok]
-        return DecodedEvents(t, x, y, p)
+        return DecodedEvents(*self._clip(t, x, y, p))
 
 
-class LibcaerCmpDecoder:
+class LibcaerCmpDecoder(_SensorClip):
     """Decoder of ``libcaer_cmp`` packets (the compressed libcaer encoding).
 
     Args:
@@ -100,8 +91,7 @@ class LibcaerCmpDecoder:
     """
 
     def __init__(self, width: int | None = None, height: int | None = None):
-        self.width, self.height = width, height
-        self.n_out_of_bounds = 0
+        super().__init__(width, height)
         self._x = 0
         self._base_y = 0
         self._pol = 0
@@ -176,9 +166,4 @@ class LibcaerCmpDecoder:
         if len(s_idx):
             self._base_y = int(s_base[-1] + inc[-1])
             self._pol = int(s_pol[-1])
-        if self.width is not None and self.height is not None and len(x):
-            ok = (x < self.width) & (y < self.height)
-            if not ok.all():
-                self.n_out_of_bounds += int(len(ok) - np.count_nonzero(ok))
-                t, x, y, p = t[ok], x[ok], y[ok], p[ok]
-        return DecodedEvents(t, x, y, p)
+        return DecodedEvents(*self._clip(t, x, y, p))

@@ -136,18 +136,34 @@ def _unwrap(raw: np.ndarray, last_raw: int | None, loops: int, period_bits: int)
     return counts, int(counts[-1]) if len(counts) else loops
 
 
-class _StreamDecoder:
+class _SensorClip:
+    """Drops (and counts) CD events outside an optional sensor geometry; shared by every decoder."""
+
+    def __init__(self, width: int | None = None, height: int | None = None):
+        self.width, self.height = width, height
+        #: CD events dropped for lying outside the given sensor geometry
+        self.n_out_of_bounds = 0
+
+    def _clip(self, t, x, y, p) -> tuple:
+        if self.width is None or self.height is None or len(x) == 0:
+            return t, x, y, p
+        ok = (x < self.width) & (y < self.height)
+        if ok.all():
+            return t, x, y, p
+        self.n_out_of_bounds += int(len(ok) - np.count_nonzero(ok))
+        return t[ok], x[ok], y[ok], p[ok]
+
+
+class _StreamDecoder(_SensorClip):
     """Bytes-to-words plumbing shared by both decoders."""
 
     word_bytes = 4
 
     def __init__(self, width: int | None = None, height: int | None = None):
-        self.width, self.height = width, height
+        super().__init__(width, height)
         self._pending = b""
         #: CD events dropped because they came before the stream's time was known
         self.n_before_time = 0
-        #: CD events dropped for lying outside the given sensor geometry
-        self.n_out_of_bounds = 0
         #: words processed so far
         self.n_words = 0
 
@@ -177,15 +193,6 @@ class _StreamDecoder:
             self._pending = b""
             raise CodecError(
                 f"stream ends with {n} byte(s) of an incomplete {self.word_bytes}-byte word (truncated data)")
-
-    def _clip(self, t, x, y, p) -> tuple:
-        if self.width is None or self.height is None or len(x) == 0:
-            return t, x, y, p
-        ok = (x < self.width) & (y < self.height)
-        if ok.all():
-            return t, x, y, p
-        self.n_out_of_bounds += int(len(ok) - np.count_nonzero(ok))
-        return t[ok], x[ok], y[ok], p[ok]
 
 
 class Evt2Decoder(_StreamDecoder):
