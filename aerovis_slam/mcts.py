@@ -351,6 +351,8 @@ class TimestampBuffer:
             out: optional preallocated output (reused by the runtime to avoid page faults).
         """
         tau = self._check_tau(tau)
+        if self.count == 0:  # no events at all: every surface is 0, whatever the windows
+            return self.surfaces(tau, np.ones(len(events_per_px)), out)
         return self.surfaces(tau, self.ne_windows_us(tau, events_per_px), out)
 
     def mcts_dt(self, tau: int | None = None, windows_ms: Sequence[float] = MCTS_DT_WINDOWS_MS, out=None) -> np.ndarray:

@@ -30,7 +30,7 @@ from torch.utils.data import DataLoader, Dataset
 from aerovis_slam import geometry as geo
 from aerovis_slam.errors import DataError
 from aerovis_slam.io.sequence import Sequence
-from aerovis_slam.mcts import MCTS_DT_WINDOWS_MS, TimestampBuffer, events_per_window
+from aerovis_slam.mcts import MCTS_DT_WINDOWS_MS, events_per_window, mcts_from_events
 
 from .correspondences import ViewGeometry, epipolar_lines, grid_targets_depth
 from .labels import CornerLabeller, Labeller, cell_labels, cross_view_consistent
@@ -58,19 +58,12 @@ def compute_mcts(seq: Sequence, cam: str, tau_us: int, spec: MctsSpec) -> np.nda
     w, h = seq.sensor_size(cam)
     end = seq.index_at(cam, tau_us + 1)
     if spec.kind == "ne":
-        n_max = int(events_per_window(spec.params, w, h).max())
-        events = seq.events_by_index(cam, max(0, end - n_max - 1), end)
-        buf = TimestampBuffer(w, h, events_per_px=spec.params)
-        buf.ingest(events)
-        if buf.count == 0:
-            return np.zeros((spec.channels, h, w), np.float32)
-        return buf.mcts_ne(tau_us, spec.params)
-    if spec.kind == "dt":
+        start = max(0, end - int(events_per_window(spec.params, w, h).max()) - 1)
+    elif spec.kind == "dt":
         start = seq.index_at(cam, tau_us - int(max(spec.params) * 1000))
-        buf = TimestampBuffer(w, h, events_per_px=(1e-9,))
-        buf.ingest(seq.events_by_index(cam, start, end))
-        return buf.mcts_dt(tau_us, spec.params)
-    raise ValueError(f"MCTS kind must be 'ne' or 'dt', not {spec.kind!r}")
+    else:
+        raise ValueError(f"MCTS kind must be 'ne' or 'dt', not {spec.kind!r}")
+    return mcts_from_events(seq.events_by_index(cam, start, end), w, h, tau_us, kind=spec.kind, params=spec.params)
 
 
 class SequenceInfo:

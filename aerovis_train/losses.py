@@ -18,6 +18,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from .correspondences import cell_centres
+
 
 def detector_loss(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
     """Cross-entropy of (B, 65, Hc, Wc) logits against (B, Hc, Wc) int64 labels (-100 = ignore)."""
@@ -25,8 +27,8 @@ def detector_loss(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
 
 
 def _cell_centres(hc: int, wc: int, cell: int, device) -> torch.Tensor:
-    ys, xs = torch.meshgrid(torch.arange(hc, device=device), torch.arange(wc, device=device), indexing="ij")
-    return torch.stack([xs.reshape(-1), ys.reshape(-1)], 1).float() * cell + (cell - 1) / 2
+    """(hc*wc, 2) float32 cell centres, the same convention as the targets (one implementation)."""
+    return torch.from_numpy(cell_centres(hc * cell, wc * cell, cell)).float().to(device)
 
 
 def _hinge(sim, pos, neg, pos_margin, neg_margin, pos_weight):
