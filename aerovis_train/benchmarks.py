@@ -25,22 +25,20 @@ def bench_train(models=("superlite", "superevent_plus"), steps: int = 12, warmup
     ``data_wait_fraction`` is the time blocked in ``next(loader)`` over the whole step time: below 20 %
     means the loader (with ``data.num_workers`` workers) keeps up with the model.
     """
-    from .data import EventPairDataset, make_loader, mcts_spec_from_config
+    from omegaconf import OmegaConf
+
+    from .data import make_loader
     from .module import KeypointModule
-    from .training import sequences_from_config
+    from .training import make_dataset, sequences_from_config
 
     result: dict = {"steps": steps}
     for name in models:
         overrides_m = [f"model={name}"] + (["data.crop=[160,200]"] if name.startswith("superevent") else []) + list(overrides or [])
         cfg = compose_config(overrides_m)
-        train_paths, _ = sequences_from_config(cfg.data)
-        ds = EventPairDataset(train_paths, mcts_spec_from_config(cfg.model.mcts), crop=tuple(cfg.data.crop),
-                              max_gap_frames=int(cfg.data.max_gap_frames), stereo_fraction=float(cfg.data.stereo_fraction),
-                              supervision=str(cfg.data.supervision), samples_per_epoch=(steps + warmup) * int(cfg.data.batch_size))
-        loader = make_loader(ds, int(cfg.data.batch_size), int(cfg.data.num_workers), shuffle=True)
-        from omegaconf import OmegaConf
-
         module = KeypointModule(OmegaConf.to_container(cfg, resolve=True))
+        train_paths, _ = sequences_from_config(cfg.data)
+        ds = make_dataset(cfg, train_paths, module.model.size_multiple, samples_per_epoch=(steps + warmup) * int(cfg.data.batch_size))
+        loader = make_loader(ds, int(cfg.data.batch_size), int(cfg.data.num_workers), shuffle=True)
         opt = module.configure_optimizers()
         it = iter(loader)
         wait = busy = 0.0

@@ -48,6 +48,11 @@ def save_slim(model_cfg: dict, state_dict: dict, out: str | os.PathLike, meta: d
     return out
 
 
+def lightning_model_state(ckpt: dict) -> dict:
+    """The network's weights out of a ``train.py`` Lightning checkpoint (the module's ``model.`` prefix dropped)."""
+    return {k[len("model."):]: v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
+
+
 def resolve(name_or_path: str | os.PathLike) -> Path:
     """A shipped model name or a file path -> existing file path."""
     s = str(name_or_path)
@@ -88,7 +93,7 @@ def load_model(name_or_path: str | os.PathLike, map_location="cpu"):
         if cfg is None or "model" not in cfg:
             raise DataError(path, "Lightning checkpoint without the aerovis config in its hyper-parameters")
         model_cfg = cfg["model"]
-        state = {k[len("model."):]: v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
+        state = lightning_model_state(ckpt)
         meta = {"global_step": ckpt.get("global_step"), "epoch": ckpt.get("epoch")}
     else:
         raise DataError(path, "not an aerovis checkpoint (expected a slim .pt from save_slim or a train.py .ckpt)")

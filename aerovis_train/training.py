@@ -21,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from aerovis_slam.errors import DataError
 
-from .checkpoints import AtomicCheckpointIO, save_slim
+from .checkpoints import AtomicCheckpointIO, lightning_model_state, save_slim
 from .data import EventPairDataset, make_loader, mcts_spec_from_config
 from .models import count_parameters
 from .module import KeypointModule
@@ -66,6 +66,18 @@ def sequences_from_config(data_cfg) -> tuple[list[Path], list[Path]]:
     return train, val
 
 
+def make_dataset(cfg: DictConfig, paths: list[Path], size_multiple: int, samples_per_epoch: int | None = None) -> EventPairDataset:
+    """The training pairs that ``cfg.data`` describes, for a model whose input sides must be
+    multiples of ``size_multiple``."""
+    crop = tuple(cfg.data.crop) if cfg.data.get("crop") else None
+    if crop is not None and (crop[0] % size_multiple or crop[1] % size_multiple):
+        raise DataError(None, f"data.crop={list(crop)} must be a multiple of {size_multiple} for encoder {cfg.model.encoder}")
+    return EventPairDataset(
+        paths, mcts_spec_from_config(cfg.model.mcts), crop=crop, max_gap_frames=int(cfg.data.max_gap_frames),
+        stereo_fraction=float(cfg.data.stereo_fraction), supervision=str(cfg.data.supervision),
+        samples_per_epoch=samples_per_epoch or int(cfg.data.samples_per_epoch), seed=int(cfg.seed))
+
+
 def train(cfg: DictConfig) -> float:
     """Run one training job; returns the best validation AUC@10 (what a sweep optimises)."""
     t_start = time.time()
@@ -76,19 +88,11 @@ def train(cfg: DictConfig) -> float:
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
 
+    module = KeypointModule(OmegaConf.to_container(cfg, resolve=True))
     train_paths, val_paths = sequences_from_config(cfg.data)
-    spec = mcts_spec_from_config(cfg.model.mcts)
-    crop = tuple(cfg.data.crop) if cfg.data.get("crop") else None
-    multiple = 40 if cfg.model.encoder == "maxvit" else 8
-    if crop is not None and (crop[0] % multiple or crop[1] % multiple):
-        raise DataError(None, f"data.crop={list(crop)} must be a multiple of {multiple} for encoder {cfg.model.encoder}")
-    dataset = EventPairDataset(
-        train_paths, spec, crop=crop, max_gap_frames=int(cfg.data.max_gap_frames), stereo_fraction=float(cfg.data.stereo_fraction),
-        supervision=str(cfg.data.supervision), samples_per_epoch=int(cfg.data.samples_per_epoch), seed=int(cfg.seed))
+    dataset = make_dataset(cfg, train_paths, module.model.size_multiple)
     loader = make_loader(dataset, int(cfg.data.batch_size), int(cfg.data.num_workers), shuffle=True)
     val_loader = torch.utils.data.DataLoader([str(p) for p in val_paths], batch_size=None)
-
-    module = KeypointModule(OmegaConf.to_container(cfg, resolve=True))
     best_cb = ModelCheckpoint(dirpath=ckpt_dir, filename="best", monitor="val/auc10", mode="max", save_top_k=1, save_last=True)
     periodic_cb = ModelCheckpoint(dirpath=ckpt_dir, filename="periodic", save_top_k=0, save_last=True,
                                   train_time_interval=timedelta(minutes=float(cfg.checkpoint_every_min)))
@@ -113,8 +117,7 @@ def train(cfg: DictConfig) -> float:
     slim = None
     if best_path and Path(best_path).exists():
         ckpt = torch.load(best_path, map_location="cpu", weights_only=False)
-        state = {k[len("model."):]: v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
-        slim = save_slim(module.cfg["model"], state, run_dir / "model.pt",
+        slim = save_slim(module.cfg["model"], lightning_model_state(ckpt), run_dir / "model.pt",
                          meta={"val_auc10": best_auc, "seed": int(cfg.seed), "data": OmegaConf.to_container(cfg.data, resolve=True),
                                "global_step": int(ckpt.get("global_step", 0))})
     summary = {
