@@ -136,6 +136,24 @@ def _unwrap(raw: np.ndarray, last_raw: int | None, loops: int, period_bits: int)
     return counts, int(counts[-1]) if len(counts) else loops
 
 
+def regroup_events(decoded, chunk_events: int, triggers: list, divisor: int = 1):
+    """Regroup decoder outputs (one per packet or byte chunk) into :class:`EventArray` chunks of about
+    ``chunk_events`` CD events, ``t // divisor``; parts holding triggers are appended to ``triggers``."""
+    pending: list[DecodedEvents] = []
+    n_pending = 0
+    for d in decoded:
+        if len(d.trig_t):
+            triggers.append(d)
+        if len(d):
+            pending.append(d)
+            n_pending += len(d)
+        if n_pending >= chunk_events:
+            yield DecodedEvents.concatenate(pending).events(0, divisor)
+            pending, n_pending = [], 0
+    if pending:
+        yield DecodedEvents.concatenate(pending).events(0, divisor)
+
+
 class _SensorClip:
     """Drops (and counts) CD events outside an optional sensor geometry; shared by every decoder."""
 

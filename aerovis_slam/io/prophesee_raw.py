@@ -24,7 +24,7 @@ import numpy as np
 
 from ..errors import DataError
 from ..events import EventArray
-from .prophesee_codecs import CodecError, DecodedEvents, make_decoder
+from .prophesee_codecs import CodecError, DecodedEvents, make_decoder, regroup_events
 from .source import SingleCameraRecording, register_format
 
 __all__ = ["PropheseeRawRecording", "PropheseeRawHeader", "read_raw_header"]
@@ -160,20 +160,8 @@ class PropheseeRawRecording(SingleCameraRecording):
     def iter_events(self, cam: str, chunk_events: int = 1 << 20) -> Iterator[EventArray]:
         """Stream CD events of ``cam0`` in chunks of about ``chunk_events`` (µs timestamps)."""
         self._check_cam(cam)
-        pending: list[DecodedEvents] = []
-        n_pending = 0
         trig: list[DecodedEvents] = []
-        for d in self.iter_decoded():
-            if len(d.trig_t):
-                trig.append(d)
-            if len(d):
-                pending.append(d)
-                n_pending += len(d)
-            if n_pending >= chunk_events:
-                yield DecodedEvents.concatenate(pending).events()
-                pending, n_pending = [], 0
-        if pending:
-            yield DecodedEvents.concatenate(pending).events()
+        yield from regroup_events(self.iter_decoded(), chunk_events, trig)
         self._set_triggers(trig)
 
     def _set_triggers(self, parts: list[DecodedEvents]) -> None:

@@ -39,7 +39,7 @@ from ..errors import DataError
 from ..events import EventArray
 from ..measurements import ImuSamples, PoseSamples
 from .libcaer_codec import LibcaerCmpDecoder, LibcaerDecoder
-from .prophesee_codecs import CodecError, DecodedEvents, make_decoder
+from .prophesee_codecs import CodecError, DecodedEvents, make_decoder, regroup_events
 from .source import Recording, register_format
 
 __all__ = ["RosbagRecording", "EVENT_MSG_DEFINITIONS", "decode_mono_packet"]
@@ -430,20 +430,8 @@ class RosbagRecording(Recording):
 
     def iter_events(self, cam: str, chunk_events: int = 1 << 20) -> Iterator[EventArray]:
         """Stream the CD events of ``cam`` (int64 µs) in chunks of about ``chunk_events``."""
-        pending: list[DecodedEvents] = []
-        n = 0
-        trig = []
-        for d in self._iter_ros_time(cam):
-            if len(d.trig_t):
-                trig.append(d)
-            if len(d):
-                pending.append(d)
-                n += len(d)
-            if n >= chunk_events:
-                yield DecodedEvents.concatenate(pending).events(0, 1000)
-                pending, n = [], 0
-        if pending:
-            yield DecodedEvents.concatenate(pending).events(0, 1000)
+        trig: list[DecodedEvents] = []
+        yield from regroup_events(self._iter_ros_time(cam), chunk_events, trig, divisor=1000)  # ns -> µs
         self._store_triggers(cam, trig)
 
     def _store_triggers(self, cam: str, parts: list[DecodedEvents]) -> None:
