@@ -150,3 +150,22 @@ def mutual_nearest_neighbours(desc0: np.ndarray, desc1: np.ndarray, min_similari
     if min_similarity is not None:
         pairs = pairs[sim[pairs[:, 0], pairs[:, 1]] >= min_similarity]
     return pairs.astype(np.int64)
+
+
+def match_keypoints(kp0: Keypoints, kp1: Keypoints) -> np.ndarray:
+    """Mutual nearest-neighbour matches: (M, 2) int64 index pairs ``(i0, i1)``.
+
+    Binary descriptors (uint8 bit strings, e.g. ORB's 32 bytes) are compared by Hamming distance
+    (OpenCV's brute-force matcher with cross-check, which is the mutual-NN test); float and int8
+    descriptors by cosine similarity (:func:`aerovis_slam.keypoints.mutual_nearest_neighbours`).
+    """
+    d0, d1 = kp0.descriptors, kp1.descriptors
+    if len(d0) == 0 or len(d1) == 0:
+        return np.zeros((0, 2), np.int64)
+    if (d0.dtype == np.uint8) != (d1.dtype == np.uint8):
+        raise ValueError(f"cannot match {d0.dtype} descriptors with {d1.dtype} descriptors")
+    if d0.dtype == np.uint8:
+        bf = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
+        ms = bf.match(np.ascontiguousarray(d0), np.ascontiguousarray(d1))
+        return np.array([(m.queryIdx, m.trainIdx) for m in ms], np.int64).reshape(-1, 2)
+    return mutual_nearest_neighbours(d0, d1)

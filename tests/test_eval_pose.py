@@ -22,17 +22,16 @@ from aerovis_slam.calib import CameraCalibration, RigCalibration
 from aerovis_slam.errors import DataError
 from aerovis_slam.events import EventArray
 from aerovis_slam.io.sequence import Sequence, SequenceWriter
-from aerovis_slam.keypoints import Keypoints
+from aerovis_slam.keypoints import Keypoints, match_keypoints
 from aerovis_slam.mcts import mcts_from_events
 from aerovis_slam.measurements import PoseSamples
 from aerovis_train.eval import cli
-from aerovis_train.eval.classical import DETECTORS, make_detector, mcts_to_image
+from aerovis_slam.classical import DETECTORS, make_detector, mcts_to_image
 from aerovis_train.eval.pose import (
     FAILURE_DEG,
     evaluate_sequence,
     interpolate_poses,
     invert_transform,
-    match_keypoints,
     plan_frames,
     pose_auc,
     relative_pose_error,
@@ -549,6 +548,6 @@ def test_cli_entry_point_subprocess(tmp_path):
     assert proc.returncode == 2 and proc.stdout == ""
     assert proc.stderr.strip().startswith("aerovis-eval: error:") and "nogt.h5" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
     # importing the evaluation package must not pull in torch
-    check = subprocess.run([sys.executable, "-c", "import sys, aerovis_train.eval.cli, aerovis_train.eval.classical; print('torch' in sys.modules)"],
+    check = subprocess.run([sys.executable, "-c", "import sys, aerovis_train.eval.cli, aerovis_slam.classical; print('torch' in sys.modules)"],
                            capture_output=True, text=True, timeout=120)
     assert check.stdout.strip() == "False"

@@ -2,12 +2,15 @@
 
 * :mod:`.pose`: the SuperEvent relative-pose protocol (pair selection, essential-matrix RANSAC,
   rotation and max(rotation, translation) AUC) on canonical sequences.
-* :mod:`.classical`: ORB, SIFT and GFTT + rBRIEF baselines computed on the same time surfaces.
+* :mod:`aerovis_slam.classical` (shared with the SLAM runtime): ORB, SIFT and GFTT + rBRIEF
+  baselines computed on the same time surfaces.
 * :mod:`.cli`: ``aerovis-eval pose``.
 
 Learned detectors plug in through ``aerovis_train.eval.learned.load_detector`` (imported lazily
 by the CLI, since it needs torch or onnxruntime).
 """
+
+from aerovis_slam.keypoints import match_keypoints
 
 from .pose import (
     Detector,
@@ -15,7 +18,6 @@ from .pose import (
     PoseError,
     evaluate_sequence,
     interpolate_poses,
-    match_keypoints,
     plan_frames,
     pose_auc,
     relative_pose_error,

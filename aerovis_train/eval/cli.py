@@ -26,7 +26,7 @@ import numpy as np
 
 from aerovis_slam.errors import DataError
 
-from .classical import DETECTORS
+from aerovis_slam.classical import DETECTORS
 from .pose import ESTIMATORS, summarize
 
 PROG = "aerovis-eval"

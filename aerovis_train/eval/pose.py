@@ -48,7 +48,7 @@ from aerovis_slam.geometry import pose7_to_matrix, rotation_angle_deg
 from aerovis_slam.geometry import interpolate_poses as _interpolate_pose7
 from aerovis_slam.errors import DataError
 from aerovis_slam.io.sequence import Sequence, camera_key
-from aerovis_slam.keypoints import Keypoints, mutual_nearest_neighbours
+from aerovis_slam.keypoints import Keypoints, match_keypoints
 from aerovis_slam.mcts import MCTS_DT_WINDOWS_MS, MCTS_NE_EVENTS_PER_PX, TimestampBuffer, events_per_window
 
 AUC_THRESHOLDS_DEG: tuple[float, ...] = (5.0, 10.0, 20.0)
@@ -178,25 +178,6 @@ def select_pairs(
 # --------------------------------------------------------------------------------------------
 # matching and two-view geometry
 # --------------------------------------------------------------------------------------------
-def match_keypoints(kp0: Keypoints, kp1: Keypoints) -> np.ndarray:
-    """Mutual nearest-neighbour matches: (M, 2) int64 index pairs ``(i0, i1)``.
-
-    Binary descriptors (uint8 bit strings, e.g. ORB's 32 bytes) are compared by Hamming distance
-    (OpenCV's brute-force matcher with cross-check, which is the mutual-NN test); float and int8
-    descriptors by cosine similarity (:func:`aerovis_slam.keypoints.mutual_nearest_neighbours`).
-    """
-    d0, d1 = kp0.descriptors, kp1.descriptors
-    if len(d0) == 0 or len(d1) == 0:
-        return np.zeros((0, 2), np.int64)
-    if (d0.dtype == np.uint8) != (d1.dtype == np.uint8):
-        raise ValueError(f"cannot match {d0.dtype} descriptors with {d1.dtype} descriptors")
-    if d0.dtype == np.uint8:
-        bf = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
-        ms = bf.match(np.ascontiguousarray(d0), np.ascontiguousarray(d1))
-        return np.array([(m.queryIdx, m.trainIdx) for m in ms], np.int64).reshape(-1, 2)
-    return mutual_nearest_neighbours(d0, d1)
-
-
 @dataclass
 class PoseError:
     """Outcome of one relative-pose estimate.
@@ -604,7 +585,7 @@ def evaluate_sequence(
         # -- detector ---------------------------------------------------------------------
         top_k = int(top_k) if top_k is not None else max(W, H) // 2
         if isinstance(detector, str):
-            from .classical import make_detector
+            from aerovis_slam.classical import make_detector
 
             detector = make_detector(detector, top_k=top_k)
         name = getattr(detector, "name", type(detector).__name__)
