@@ -3,8 +3,9 @@
     aerovis-bench mcts     # event ingest and MCTS_Ne against a memory-traffic floor (one core)
     aerovis-bench sim      # simulator speed for a 10 s stereo sequence at 240x320
     aerovis-bench train    # training samples/s and data-wait fraction (superlite, superevent_plus)
+    aerovis-bench detector BUNDLE [BUNDLE...]   # ONNX Runtime latency of model bundles, one line per bundle
 
-Each subcommand imports only what it needs, so ``aerovis-bench mcts`` runs without torch.
+Each subcommand imports only what it needs, so ``aerovis-bench mcts`` and ``detector`` run without torch.
 """
 
 from __future__ import annotations
@@ -23,6 +24,14 @@ def main(argv: list[str] | None = None) -> int:
     p_train = sub.add_parser("train", help="training samples/s of superlite and superevent_plus, and the data-wait fraction")
     p_train.add_argument("--steps", type=int, default=12)
     p_train.add_argument("overrides", nargs="*", help="extra train.py overrides, e.g. data.num_workers=2")
+    p_det = sub.add_parser("detector", help="inference and inference + post-processing latency of model bundles (one line each, "
+                                            "measured round-robin in one run)")
+    p_det.add_argument("bundles", nargs="+", help="bundle directories written by aerovis-export")
+    p_det.add_argument("--repeats", type=int, default=50)
+    p_det.add_argument("--warmup", type=int, default=5)
+    p_det.add_argument("--threads", type=int, default=None, help="ONNX Runtime intra-op threads (default: its own, one per core)")
+    p_det.add_argument("--height", type=int, default=None, help="measure at this height instead of each bundle's own")
+    p_det.add_argument("--width", type=int, default=None, help="measure at this width instead of each bundle's own")
     args = ap.parse_args(argv)
     if args.command == "mcts":
         from aerovis_slam.benchmarks import bench_mcts
@@ -36,6 +45,20 @@ def main(argv: list[str] | None = None) -> int:
         from aerovis_train.benchmarks import bench_train
 
         result = bench_train(steps=args.steps, overrides=args.overrides)
+    elif args.command == "detector":
+        from aerovis_slam.bundle import benchmark_bundles
+        from aerovis_slam.errors import DataError
+
+        try:
+            results = benchmark_bundles(args.bundles, repeats=args.repeats, warmup=args.warmup, threads=args.threads,
+                                        height=args.height, width=args.width)
+        except DataError as exc:
+            print(f"aerovis-bench: error: {exc}", file=sys.stderr)
+            return 2
+        for r in results:
+            print(json.dumps(r))
+        sys.stdout.flush()
+        return 0
     else:  # pragma: no cover - argparse rejects unknown commands
         return 2
     print(json.dumps(result))

@@ -50,8 +50,18 @@ class TorchDetector:
         return kp
 
 
-def load_detector(name_or_path: str | os.PathLike, **kwargs) -> TorchDetector:
-    """A shipped name (``superlite``...), a slim ``.pt`` or a ``train.py`` ``.ckpt`` -> detector."""
+def load_detector(name_or_path: str | os.PathLike, **kwargs):
+    """A shipped name (``superlite``...), a slim ``.pt`` or a ``train.py`` ``.ckpt`` -> :class:`TorchDetector`;
+    a model bundle directory (``aerovis-export``) -> :class:`aerovis_slam.bundle.BundleDetector`.
+
+    Both use the evaluation's post-processing (threshold 0 unless ``threshold`` is given, top-k by the
+    protocol), so ``aerovis-eval pose --model superlite`` and ``--model BUNDLE_DIR`` compare alike.
+    """
+    if os.path.isdir(name_or_path):
+        from aerovis_slam.bundle import BundleDetector
+
+        kwargs.setdefault("threshold", 0.0)
+        return BundleDetector(name_or_path, **kwargs)
     from ..checkpoints import load_model
 
     model, model_cfg, _ = load_model(name_or_path)
