@@ -1,5 +1,10 @@
 """The training job behind ``python train.py``: data, module, callbacks, trainer, summary.
 
+Every job ends by writing ``metrics.json`` beside ``model.pt`` (parameters, FLOPs, validation
+AUC@5/10/20 of the selected checkpoint, ONNX Runtime latency, the Hydra overrides that define it;
+see :mod:`aerovis_train.search.metrics`), which ``aerovis-search summarize`` turns into a
+leaderboard.
+
 Resuming: a run directory that already holds ``checkpoints/last.ckpt`` continues from it (run the
 same command with ``hydra.run.dir=<that directory>``); ``last.ckpt`` is refreshed every
 ``checkpoint_every_min`` minutes and at the end of each validation, so an interruption loses at most
@@ -9,6 +14,7 @@ that much work. ``best.ckpt`` (highest validation AUC@10) is written atomically.
 from __future__ import annotations
 
 import json
+import sys
 import time
 from datetime import timedelta
 from pathlib import Path
@@ -66,20 +72,61 @@ def sequences_from_config(data_cfg) -> tuple[list[Path], list[Path]]:
     return train, val
 
 
+def fit_crop(cfg: DictConfig, size_multiple: int) -> tuple[int, int] | None:
+    """``cfg.data.crop`` (h, w) fitted to a model whose input sides must be multiples of ``size_multiple``.
+
+    With ``data.crop_fit=shrink`` (the default) a crop that is no multiple is shrunk to the
+    nearest multiples below, with a message on stderr: one sweep can then mix encoders of
+    different multiples (``model.encoder=vgg_lite,maxvit``: 160x224 trains MaxViT on 160x200).
+    ``data.crop_fit=error`` refuses such a crop instead.
+
+    Raises:
+        DataError: the crop is no multiple and ``crop_fit`` is ``error``, or a side is smaller
+            than one multiple.
+    """
+    crop = tuple(int(v) for v in cfg.data.crop) if cfg.data.get("crop") else None
+    if crop is None or not (crop[0] % size_multiple or crop[1] % size_multiple):
+        return crop
+    policy = str(cfg.data.get("crop_fit") or "shrink")
+    if policy not in ("shrink", "error"):
+        raise DataError(None, f"data.crop_fit must be 'shrink' or 'error', not {policy!r}")
+    fitted = (crop[0] // size_multiple * size_multiple, crop[1] // size_multiple * size_multiple)
+    if policy == "error" or min(fitted) == 0:
+        why = "" if policy == "error" else f"; a side below {size_multiple} cannot be shrunk to one"
+        raise DataError(None, f"data.crop={list(crop)} must be a multiple of {size_multiple} for encoder {cfg.model.encoder}{why}")
+    print(f"train.py: note: data.crop={list(crop)} is not a multiple of {size_multiple} (encoder {cfg.model.encoder} needs "
+          f"multiples of {size_multiple}): training on {list(fitted)} crops (data.crop_fit=error refuses instead)", file=sys.stderr)
+    return fitted
+
+
 def make_dataset(cfg: DictConfig, paths: list[Path], size_multiple: int, samples_per_epoch: int | None = None) -> EventPairDataset:
     """The training pairs that ``cfg.data`` describes, for a model whose input sides must be
-    multiples of ``size_multiple``."""
-    crop = tuple(cfg.data.crop) if cfg.data.get("crop") else None
-    if crop is not None and (crop[0] % size_multiple or crop[1] % size_multiple):
-        raise DataError(None, f"data.crop={list(crop)} must be a multiple of {size_multiple} for encoder {cfg.model.encoder}")
+    multiples of ``size_multiple`` (the crop fitted by :func:`fit_crop`)."""
+    crop = fit_crop(cfg, size_multiple)
     return EventPairDataset(
         paths, mcts_spec_from_config(cfg.model.mcts), crop=crop, max_gap_frames=int(cfg.data.max_gap_frames),
         stereo_fraction=float(cfg.data.stereo_fraction), supervision=str(cfg.data.supervision),
         samples_per_epoch=samples_per_epoch or int(cfg.data.samples_per_epoch), seed=int(cfg.seed))
 
 
-def train(cfg: DictConfig) -> float:
-    """Run one training job; returns the best validation AUC@10 (what a sweep optimises)."""
+def job_overrides() -> list[str] | None:
+    """The Hydra overrides of the running job (``HydraConfig.get().overrides.task``); None outside Hydra."""
+    from hydra.core.hydra_config import HydraConfig
+
+    try:
+        return list(HydraConfig.get().overrides.task)
+    except ValueError:  # HydraConfig was not set: train() called from Python with a composed config
+        return None
+
+
+def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
+    """Run one training job; returns the best validation AUC@10 (what a sweep optimises).
+
+    Args:
+        cfg: the composed run config (``conf/config.yaml``).
+        overrides: the overrides that define the job, recorded in ``metrics.json``; None: the
+            running Hydra job's (``python train.py ...``), if any.
+    """
     t_start = time.time()
     L.seed_everything(int(cfg.seed), workers=True)
     torch.set_num_threads(int(cfg.get("torch_threads") or torch.get_num_threads()))
@@ -120,6 +167,14 @@ def train(cfg: DictConfig) -> float:
         slim = save_slim(module.cfg["model"], lightning_model_state(ckpt), run_dir / "model.pt",
                          meta={"val_auc10": best_auc, "seed": int(cfg.seed), "data": OmegaConf.to_container(cfg.data, resolve=True),
                                "global_step": int(ckpt.get("global_step", 0))})
+    metrics_path = None
+    if trainer.is_global_zero:  # one metrics.json per job, also under DDP
+        selected = best_path if best_path and Path(best_path).exists() else None
+        extra = {"best_val_auc10": best_auc, "checkpoint": selected, "weights": str(slim) if slim else None, "steps": int(trainer.global_step),
+                 "train_wall_s": round(time.time() - t_start, 1), "seed": int(cfg.seed), "run_dir": str(run_dir),
+                 "crop": list(dataset.crop) if dataset.crop else None}
+        metrics_path = _write_metrics(cfg, module, selected, val_loader, (val_paths or train_paths)[0],
+                                      overrides if overrides is not None else job_overrides(), run_dir, extra)
     summary = {
         "model": cfg.model.name,
         "best_val_auc10": best_auc,
@@ -135,11 +190,39 @@ def train(cfg: DictConfig) -> float:
         "run_dir": str(run_dir),
         "config": str(run_dir / "config.yaml"),
         "logs": str(run_dir / "logs"),
+        "metrics": str(metrics_path) if metrics_path else None,
     }
     tmp = run_dir / "summary.json.partial"
     tmp.write_text(json.dumps(summary, indent=2))
     tmp.replace(run_dir / "summary.json")
     print(f"\n{cfg.model.name}: best val AUC@10 {best_auc:.2f} % after {summary['steps']} steps ({summary['wall_s']:.0f} s)")
     print(f"  weights     {summary['weights']}\n  checkpoint  {best_path}\n  config      {summary['config']}\n"
-          f"  logs        {summary['logs']} (tensorboard: {run_dir / 'tensorboard'})\n  summary     {run_dir / 'summary.json'}")
+          f"  logs        {summary['logs']} (tensorboard: {run_dir / 'tensorboard'})\n  summary     {run_dir / 'summary.json'}\n"
+          f"  metrics     {summary['metrics']}")
     return best_auc
+
+
+def _write_metrics(cfg: DictConfig, module: KeypointModule, best_path: str | None, val_loader, calibration: Path,
+                   overrides: list[str] | None, run_dir: Path, extra: dict) -> Path:
+    """``run_dir/metrics.json`` of the job (:mod:`aerovis_train.search.metrics`): the selected
+    checkpoint is re-validated with the module's own validation step (so AUC@5 and AUC@20 belong to
+    the same checkpoint as the AUC@10 that selected it), then parameters, FLOPs and ONNX latency."""
+    from .search.metrics import METRICS_FILE, job_metrics, write_json
+
+    val = None
+    if best_path is not None:
+        # a separate, silent trainer: the run's loggers and checkpoints are left as fit() left them
+        checker = L.Trainer(accelerator=cfg.trainer.accelerator, devices=1, logger=False, enable_checkpointing=False,
+                            enable_progress_bar=False, enable_model_summary=False)
+        res = checker.validate(module, val_loader, ckpt_path=best_path, verbose=False, weights_only=False)
+        if res and "val/auc10" in res[0]:
+            val = {k.split("/", 1)[1]: float(v) for k, v in res[0].items() if k.startswith("val/")}
+    mc = OmegaConf.to_container(cfg.metrics, resolve=True) if cfg.get("metrics") is not None else {}
+    metrics = job_metrics(module.model.cpu(), module.cfg["model"], val=val, overrides=overrides, calibration=calibration, metrics_cfg=mc,
+                          extra=extra, bundle_dir=run_dir / "bundle_fp32" if mc.get("keep_bundle", True) else None)
+    path = write_json(run_dir / METRICS_FILE, metrics)
+    lat = f"{metrics['latency_ms']:.1f} ms" if metrics["latency_ms"] is not None else f"not measured ({metrics['latency_error']})"
+    auc = "n/a" if metrics["auc10"] is None else f"{metrics['auc5']:.1f} / {metrics['auc10']:.1f} / {metrics['auc20']:.1f} %"
+    print(f"  val AUC@5/10/20 {auc}, {metrics['parameters'] / 1e6:.2f} M params, {metrics['flops'] / 1e9:.2f} GFLOP, latency {lat}",
+          file=sys.stderr)
+    return path

@@ -107,7 +107,8 @@ def _train(tmp_path, *overrides, cache=None):
     """Run train.py; with ``cache``, on the simulator's `tiny` preset generated there."""
     sim = ["data.preset=tiny", f"data.cache_dir={cache}", "data.val_sequences=1"] if cache else []
     cmd = [sys.executable, str(REPO_ROOT / "train.py"), *sim, "data.samples_per_epoch=4", "data.batch_size=2", "data.num_workers=0",
-           "val.max_pairs=3", "val.rate_hz=20", f"hydra.run.dir={tmp_path}", *overrides]
+           "val.max_pairs=3", "val.rate_hz=20", "metrics.latency=false",  # ONNX latency is tested in test_search.py
+           f"hydra.run.dir={tmp_path}", *overrides]
     return subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path.parent)
 
 
@@ -146,7 +147,7 @@ def test_resume_continues_from_last_checkpoint(tmp_path, sim_cache):
 
 
 def test_bad_training_input_is_explained(tmp_path, sim_cache):
-    res = _train(tmp_path / "run", "model=superevent_plus", "data.crop=[40,56]", "+trainer.max_steps=1", cache=sim_cache)
+    res = _train(tmp_path / "run", "model=superevent_plus", "data.crop=[40,56]", "data.crop_fit=error", "+trainer.max_steps=1", cache=sim_cache)
     assert res.returncode == 2 and "must be a multiple of 40" in res.stderr and "Traceback" not in res.stderr
     from aerovis_slam.io.sequence import SequenceWriter
     from aerovis_slam.events import EventArray

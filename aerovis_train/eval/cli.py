@@ -5,11 +5,16 @@
                       [--ransac-px PX] [--estimator ransac] [--max-dt-s 2] [--max-angle-deg 45]
                       [--out FILE.json] [--quiet]
 
+    aerovis-eval compare --data DIR|PRESET [--models ...] [--detectors ...] [--onnx-latency] [--out DIR]
+
 ``pose`` runs the SuperEvent relative-pose protocol (:mod:`aerovis_train.eval.pose`). With a
 folder, every ``*.h5`` in it (not recursive) is evaluated and the pairs of all sequences are
 pooled into one AUC, as the published numbers pool a dataset's sequences. It prints ONE JSON
 line on stdout (AUC in percent), a short human summary and tqdm progress on stderr; ``--out``
 writes the same summary plus per-sequence results and per-pair errors.
+
+``compare`` (:mod:`aerovis_train.eval.compare`) evaluates the shipped models and the classical
+baselines in one run on the same pairs: one table, one JSON line per method.
 
 Bad input (missing file, no GT or calibration, no pair) prints one message naming the file and
 exits with status 2. Only ``--model`` imports the learned-model loader (torch / onnxruntime).
@@ -44,7 +49,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--detector", nargs="+", default=[], choices=sorted(DETECTORS),
                    help="classical baseline(s) on the same time surfaces")
     p.add_argument("--model", nargs="+", default=[],
-                   help="learned model(s): shipped name (superlite, superevent_plus, superevent), model.pt or train.py .ckpt")
+                   help="learned model(s): shipped name (superlite, superevent_plus, superevent), model.pt, train.py .ckpt or a bundle directory (aerovis-export)")
     p.add_argument("--cam", default="cam0", help="camera (default cam0)")
     p.add_argument("--mcts", choices=("ne", "dt"), default=None,
                    help="time surface: MCTS_Ne or MCTS_dt (default: the model's own, ne for classical detectors)")
@@ -58,6 +63,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--max-angle-deg", type=float, default=45.0, help="largest rotation threshold in degrees (protocol: 45)")
     p.add_argument("--out", help="write summary, per-sequence and per-pair results to this JSON file")
     p.add_argument("--quiet", action="store_true", help="no progress bar or human summary")
+    from .compare import add_parser as add_compare
+
+    add_compare(sub)
     return ap
 
 
@@ -129,23 +137,33 @@ def _pose_one(args, seqs: list[Path], label: str, detector) -> tuple[dict, list[
             print(f"aerovis-eval: skipping {exc}", file=sys.stderr)
     if not results:
         raise DataError(args.data, "no sequence yields frame pairs")
+    return pooled_summary(results, args.data, skipped), results
+
+
+def pooled_summary(results: list[dict], data: str, skipped: list[str]) -> dict:
+    """One summary of several :func:`~aerovis_train.eval.pose.evaluate_sequence` results of one method:
+    the pairs of all sequences pooled into one AUC, timings averaged over all frames."""
     per_pair = [pp for r in results for pp in r["per_pair"]]
     frames = np.array([r["frames"] for r in results], np.float64)
-    summary = {"model": results[0]["model"], "data": str(args.data), "sequences": len(results), **summarize(per_pair),
+    summary = {"model": results[0]["model"], "data": str(data), "sequences": len(results), **summarize(per_pair),
                # per-frame timings pooled over all frames of all sequences
                "latency_ms": float(np.average([r["latency_ms"] for r in results], weights=frames)),
                "mcts_ms": float(np.average([r["mcts_ms"] for r in results], weights=frames)),
-               "frames": int(frames.sum()), "mcts": results[0]["mcts"], "rate_hz": common["rate_hz"], "estimator": args.estimator,
-               "skipped": skipped}
+               "frames": int(frames.sum()), "mcts": results[0]["mcts"], "rate_hz": results[0]["rate_hz"],
+               "estimator": results[0]["estimator"], "skipped": skipped}
     for key in ("ransac_px", "top_k", "resolution"):
         values = {json.dumps(r[key]) for r in results}
         summary[key] = results[0][key] if len(values) == 1 else [r[key] for r in results]
-    return summary, results
+    return summary
 
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
+        if args.command == "compare":
+            from .compare import main_compare
+
+            return main_compare(args, argv)
         if args.command == "pose":
             for summary in _pose(args):
                 if not args.quiet:

@@ -451,12 +451,15 @@ def plan_frames(
     max_gt_gap_s: float = 0.1,
     superevent_code_compat: bool = False,
     max_pairs: int | None = None,
+    t_start_us: int | None = None,
 ) -> FramePlan:
     """Frame times, camera poses and pairs of an open sequence (arguments as :func:`evaluate_sequence`).
 
     Frames start once the MCTS is warmed up (the longest MCTS_Ne window holds ``max(N_k)``
     events, or the longest MCTS_dt window has elapsed since the first event) and the GT has
-    begun, and end at the last event or GT sample, whichever comes first.
+    begun, and end at the last event or GT sample, whichever comes first. ``t_start_us`` moves
+    the first frame later (never earlier): methods on different time surfaces (whose warm-ups
+    differ) then share one frame grid and so the same pairs (``aerovis-eval compare``).
 
     Raises:
         DataError: no GT, no calibration, unknown camera, sizes that disagree, no events, no overlap
@@ -490,7 +493,8 @@ def plan_frames(
     else:
         params = tuple(float(v) for v in (mcts_params or MCTS_DT_WINDOWS_MS))
         warm_t = tr[0] + int(round(max(params) * 1000))
-    t_lo, t_hi = max(int(gt.t[0]), warm_t), min(int(gt.t[-1]), tr[1])
+    t_lo = max(int(gt.t[0]), warm_t, warm_t if t_start_us is None else int(t_start_us))
+    t_hi = min(int(gt.t[-1]), tr[1])
     if t_hi <= t_lo:
         raise DataError(path, f"GT [{gt.t[0]}, {gt.t[-1]}] µs and the events of {cam} after MCTS warm-up [{warm_t}, {tr[1]}] µs do not overlap")
     if rate_hz is None:
@@ -527,6 +531,7 @@ def evaluate_sequence(
     superevent_code_compat: bool = False,
     estimator: str = "ransac",
     progress: bool = False,
+    t_start_us: int | None = None,
 ) -> dict:
     """Relative-pose evaluation of one detector on one canonical sequence.
 
@@ -551,6 +556,7 @@ def evaluate_sequence(
             capture dropouts; interpolating across them would invent poses).
         estimator: essential-matrix estimator, see :data:`ESTIMATORS`.
         progress: tqdm bar on stderr.
+        t_start_us: no frame before this time (µs); see :func:`plan_frames`.
     Returns:
         A JSON-ready dict: ``model``, ``sequence``, ``cam``, ``resolution`` [W, H], ``mcts``,
         ``mcts_params``, ``rate_hz``, ``ransac_px``, ``top_k``, ``frames`` (frames detected),
@@ -574,7 +580,8 @@ def evaluate_sequence(
     with Sequence(path) as seq:
         plan = plan_frames(seq, cam, mcts_kind=mcts_kind, mcts_params=mcts_params, rate_hz=rate_hz, max_dt_s=max_dt_s,
                            max_angle_deg=max_angle_deg, max_gt_gap_s=max_gt_gap_s,
-                           superevent_code_compat=superevent_code_compat, max_pairs=max_pairs)
+                           superevent_code_compat=superevent_code_compat, max_pairs=max_pairs,
+                           t_start_us=t_start_us)
         cam, camcal, W, H, params = camera_key(cam), plan.camera, plan.width, plan.height, plan.mcts_params
         times, T_w_c, pairs = plan.times_us, plan.T_world_cam, plan.pairs
         if mcts_kind == "ne":

@@ -1,0 +1,330 @@
+"""``aerovis-eval compare``: learned models and classical baselines in one run, on the same pairs.
+
+    aerovis-eval compare --data DIR|SEQ.h5|PRESET [--models superlite superevent_plus superevent|PATH|LABEL=PATH ...]
+                         [--detectors orb sift gftt_brief] [--classical-mcts ne|dt] [--onnx-latency]
+                         [--rate-hz 20] [--max-pairs N] [--top-k N] [--out DIR] [--quiet]
+
+Every method is evaluated by the SuperEvent relative-pose protocol (:mod:`.pose`) on the same
+frames and therefore the same pairs: a learned model on the time surface it was trained on
+(MCTS_Ne for SuperLitE and SuperEvent+, MCTS_dt for SuperEvent), a classical baseline on
+``--classical-mcts`` (MCTS_Ne by default, the surface of the AERO-VIS models). The surfaces warm
+up differently (MCTS_dt needs its longest window, 100 ms, MCTS_Ne a number of events), so each
+sequence's first frame is the latest of all the surfaces' first frames (``t_start_us`` of
+:func:`~aerovis_train.eval.pose.plan_frames`); a sequence on which any method's plan has no pair is
+left out for all. The run checks that every method saw exactly the same pairs.
+
+Default models are the shipped ``superlite``, ``superevent_plus`` and ``superevent``; those whose
+weights are not installed are listed as missing (a checkpoint path can stand in, labelled
+``LABEL=PATH``). Output: one table (Markdown on stderr) and one JSON line per method on stdout::
+
+    {"method": "superlite", "auc5": ..., "auc10": ..., "auc20": ..., "matches": ..., "inlier_ratio": ...,
+     "latency_ms": ..., ...}
+
+AUC in percent (rotation error, the SuperEvent metric), ``matches`` per pair, ``inlier_ratio`` the
+mean over pairs, ``latency_ms`` the detector's mean time per frame in this run (learned models in
+PyTorch eager mode on this machine, one MCTS at the sequence's resolution; classical ones in
+OpenCV; a bundle directory given as a model runs in ONNX Runtime). ``--onnx-latency`` adds
+``onnx_fp32_ms``: the ONNX Runtime FP32 latency of a stereo batch of 2 at 424x240 (cropped to the
+model's size multiple), the deployment figure that ``metrics.json`` of a training job holds too,
+timed round-robin for all models in one run (see :func:`onnx_figures`). ``--out DIR`` writes
+``compare.json`` (summaries, per-sequence and per-pair results, the command), ``compare.md``,
+``compare.csv`` and, with ``--onnx-latency``, the timed bundles under ``DIR/bundles``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import shlex
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from aerovis_slam.errors import DataError
+from aerovis_slam.io.sequence import Sequence
+
+from .cli import UsageError, _load_model, _sequences, pooled_summary
+from .pose import evaluate_sequence, plan_frames
+
+DEFAULT_MODELS = ("superlite", "superevent_plus", "superevent")
+DEFAULT_DETECTORS = ("orb", "sift", "gftt_brief")
+JSON_KEYS = ("method", "auc5", "auc10", "auc20", "matches", "inlier_ratio", "latency_ms")
+
+
+@dataclass
+class Method:
+    """One row of the comparison.
+
+    Attributes:
+        label: the ``method`` name in tables.
+        detector: a learned detector object, or a classical detector's name.
+        kind: ``"learned"`` or ``"classical"``.
+        source: weights file of a learned model (None for classical ones).
+        mcts_kind, mcts_params: the time surface it is evaluated on.
+    """
+
+    label: str
+    detector: object
+    kind: str
+    source: str | None
+    mcts_kind: str
+    mcts_params: tuple | None
+    extra: dict = field(default_factory=dict)
+
+
+def resolve_models(specs: list[str]) -> tuple[list[Method], list[str]]:
+    """Learned methods from ``NAME``, ``PATH`` or ``LABEL=PATH`` specs (a path: a ``.pt``/``.ckpt``
+    checkpoint, run in PyTorch, or an exported bundle directory, run in ONNX Runtime); shipped names
+    whose weights are not installed are returned as missing instead of failing the run."""
+    from aerovis_train.checkpoints import SHIPPED, WEIGHTS_DIR, file_sha256, resolve
+
+    methods, missing = [], []
+    for spec in specs:
+        # LABEL=PATH, unless the whole spec is an existing path that happens to contain "="
+        label, _, target = spec.partition("=") if "=" in spec and not Path(spec).exists() else ("", "", spec)
+        if target in SHIPPED and not (WEIGHTS_DIR / f"{target}.pt").exists():
+            missing.append(target)
+            continue
+        det = _load_model(target)
+        if not label:
+            label = target if target in SHIPPED else det.name
+        det.name = label
+        path = resolve(target)
+        bundle = getattr(det, "bundle", None)  # a BundleDetector: its ONNX graph is what runs
+        extra = ({"sha256": bundle.meta["files"][bundle.onnx_path.name], "runtime": f"onnxruntime {bundle.precision}"} if bundle is not None
+                 else {"sha256": file_sha256(path), "runtime": "torch"})
+        methods.append(Method(label, det, "learned", str(path), det.mcts_kind, tuple(det.mcts_params), extra))
+    labels = [m.label for m in methods]
+    dup = sorted({x for x in labels if labels.count(x) > 1})
+    if dup:
+        raise UsageError(f"--models: several models are called {dup}; name them with LABEL=PATH")
+    return methods, missing
+
+
+def common_starts(seqs: list[Path], methods: list[Method], *, cam: str, rate_hz: float | None, max_dt_s: float,
+                  max_angle_deg: float) -> tuple[dict[Path, int], list[str]]:
+    """Per sequence, the first frame time (µs) at which every method's time surface is warm; the
+    sequences on which some surface's plan yields no pair are returned as skipped (with reason)."""
+    surfaces = sorted({(m.mcts_kind, m.mcts_params) for m in methods}, key=str)
+    starts, skipped = {}, []
+    for p in seqs:
+        try:
+            with Sequence(p) as seq:
+                firsts = [int(plan_frames(seq, cam, mcts_kind=k, mcts_params=params, rate_hz=rate_hz, max_dt_s=max_dt_s,
+                                          max_angle_deg=max_angle_deg).times_us[0]) for k, params in surfaces]
+                t0 = max(firsts)
+                # the common start must still leave pairs for every surface
+                for k, params in surfaces:
+                    plan_frames(seq, cam, mcts_kind=k, mcts_params=params, rate_hz=rate_hz, max_dt_s=max_dt_s,
+                                max_angle_deg=max_angle_deg, t_start_us=t0)
+        except DataError as exc:
+            if len(seqs) == 1 or "no frame pairs" not in str(exc):
+                raise
+            skipped.append(str(p))
+            print(f"aerovis-eval: skipping {exc}", file=sys.stderr)
+            continue
+        starts[p] = t0
+    if not starts:
+        raise DataError(seqs[0].parent if len(seqs) > 1 else seqs[0], "no sequence yields frame pairs for every method")
+    return starts, skipped
+
+
+def run_compare(data: str, methods: list[Method], *, cam: str = "cam0", rate_hz: float | None = 20.0, max_pairs: int | None = None,
+                top_k: int | None = None, ransac_px: float | None = None, estimator: str = "ransac", max_dt_s: float = 2.0,
+                max_angle_deg: float = 45.0, onnx_latency: bool = False, bundle_dir: str | Path | None = None,
+                progress: bool = True) -> dict:
+    """Evaluate ``methods`` on the same pairs of ``data`` (sequence, folder or preset name).
+
+    With ``onnx_latency`` every learned method also gets ONNX Runtime figures (:func:`onnx_figures`);
+    its bundles are kept in ``bundle_dir`` when given.
+
+    Returns:
+        ``{"rows": [one summary per method, JSON_KEYS first], "sequences": [...], "skipped": [...],
+        "pairs": N, "results": {method: per-sequence results with per-pair errors}}``.
+    Raises:
+        DataError: bad data, or no sequence with pairs for every method.
+        RuntimeError: methods ended up with different pairs (a bug: the plans must agree).
+    """
+    if not methods:
+        raise UsageError("nothing to compare: no model weights found and no --detectors given")
+    seqs = _sequences(data)
+    starts, skipped = common_starts(seqs, methods, cam=cam, rate_hz=rate_hz, max_dt_s=max_dt_s, max_angle_deg=max_angle_deg)
+    rows, all_results, pair_keys = [], {}, {}
+    for m in methods:
+        t0 = time.perf_counter()
+        results = [evaluate_sequence(p, m.detector, cam=cam, mcts_kind=m.mcts_kind, mcts_params=m.mcts_params, rate_hz=rate_hz,
+                                     ransac_px=ransac_px, top_k=top_k, max_pairs=max_pairs, max_dt_s=max_dt_s,
+                                     max_angle_deg=max_angle_deg, estimator=estimator, progress=progress, t_start_us=t_start)
+                   for p, t_start in starts.items()]
+        keys = [(r["sequence"], pp["t0_us"], pp["t1_us"]) for r in results for pp in r["per_pair"]]
+        pair_keys[m.label] = keys
+        summary = pooled_summary(results, data, skipped)
+        row = {"method": m.label, **{k: summary[k] for k in JSON_KEYS[1:]}, "kind": m.kind, "mcts": m.mcts_kind,
+               "pairs": summary["pairs"], "auc5_max": summary["auc5_max"], "auc10_max": summary["auc10_max"],
+               "auc20_max": summary["auc20_max"], "sequences": summary["sequences"], "frames": summary["frames"],
+               "mcts_ms": summary["mcts_ms"], "resolution": summary["resolution"], "top_k": summary["top_k"],
+               "ransac_px": summary["ransac_px"], "source": m.source, **m.extra, "eval_s": round(time.perf_counter() - t0, 1)}
+        if m.kind == "learned" and hasattr(m.detector, "model"):
+            from aerovis_train.models import count_parameters
+
+            row["parameters"] = count_parameters(m.detector.model)
+        rows.append(row)
+        all_results[m.label] = results
+    first = methods[0].label
+    for label, keys in pair_keys.items():
+        if keys != pair_keys[first]:
+            raise RuntimeError(f"methods {first} and {label} were evaluated on different pairs ({len(pair_keys[first])} vs {len(keys)})")
+    learned = [(m, r) for m, r in zip(methods, rows) if m.kind == "learned"]
+    if onnx_latency and learned:
+        figures = onnx_figures([m for m, _ in learned], calibration=next(iter(starts)), keep_dir=bundle_dir)
+        for (m, r) in learned:
+            r.update(figures[m.label])
+    return {"rows": rows, "sequences": [str(p) for p in starts], "skipped": skipped, "pairs": len(pair_keys[first]),
+            "t_start_us": {str(p): t for p, t in starts.items()}, "results": all_results}
+
+
+def onnx_figures(methods: list[Method], *, calibration: Path, keep_dir: str | Path | None = None, repeats: int = 20,
+                 warmup: int = 3) -> dict[str, dict]:
+    """ONNX Runtime latency of each learned method, timed together.
+
+    A PyTorch model is exported to an FP32 bundle of a stereo batch at 424x240 (cropped to its size
+    multiple; :func:`aerovis_train.search.metrics.export_fp32_bundle`); a bundle given as the model is
+    timed as it is (its own precision and resolution). All bundles are then timed round-robin in one
+    :func:`aerovis_slam.bundle.benchmark_bundles` run, so that load from other processes hits them
+    alike and their ratios stay meaningful on a busy machine.
+
+    Returns:
+        Per label: ``onnx_fp32_ms`` (median inference of an FP32 bundle; ``onnx_ms`` and
+        ``onnx_precision`` for a bundle of another precision) and ``onnx`` (the full record), or
+        ``onnx_error`` when the export failed (the accuracy figures stand without it).
+    """
+    import tempfile
+
+    from aerovis_slam.bundle import benchmark_bundles
+    from aerovis_train.search.metrics import export_fp32_bundle, latency_record
+
+    out: dict[str, dict] = {}
+    with tempfile.TemporaryDirectory(prefix="aerovis-compare-") as tmp:
+        root = Path(keep_dir) if keep_dir is not None else Path(tmp)
+        timed: list[tuple[Method, Path, dict]] = []
+        for m in methods:
+            bundle = getattr(m.detector, "bundle", None)
+            if bundle is not None:
+                info = {"resolution": [bundle.width, bundle.height], "requested": None, "batch": bundle.batch,
+                        "precision": bundle.precision, "note": "the given bundle, as exported"}
+                timed.append((m, bundle.path, info))
+                continue
+            try:
+                path, info = export_fp32_bundle(m.detector.model, root / f"{m.label}_fp32", calibration=calibration)
+            except Exception as exc:  # noqa: BLE001 - reported per model; the others are still timed
+                print(f"aerovis-eval: {m.label}: ONNX latency not measured ({type(exc).__name__}: {exc})", file=sys.stderr)
+                out[m.label] = {"onnx_fp32_ms": None, "onnx_error": f"{type(exc).__name__}: {exc}"}
+                continue
+            timed.append((m, path, info))
+        stats = benchmark_bundles([p for _, p, _ in timed], repeats=repeats, warmup=warmup) if timed else []
+        for (m, path, info), st in zip(timed, stats):
+            rec = latency_record(st, info, threads=None, bundle=str(path) if keep_dir is not None or info["requested"] is None else None)
+            key = "onnx_fp32_ms" if info["precision"] == "fp32" else "onnx_ms"
+            out[m.label] = {key: rec["latency_ms"], "onnx": rec, **({} if key == "onnx_fp32_ms" else {"onnx_precision": info["precision"]})}
+    return out
+
+
+def _f(v, digits: int = 1) -> str:
+    return "n/a" if v is None else f"{v:.{digits}f}"
+
+
+def markdown_table(rows: list[dict]) -> str:
+    """The comparison as a Markdown table (ONNX column only when measured)."""
+    onnx = any("onnx_fp32_ms" in r for r in rows)
+    head = "| method | kind | MCTS | AUC@5 | AUC@10 | AUC@20 | matches/pair | inlier ratio | latency (ms/frame) |"
+    rule = "|---|---|---|---:|---:|---:|---:|---:|---:|"
+    if onnx:
+        head += " ONNX FP32 (ms, 2x424x240) |"
+        rule += "---:|"
+    lines = [head, rule]
+    for r in rows:
+        line = (f"| {r['method']} | {r['kind']} | {r['mcts']} | {_f(r['auc5'])} | {_f(r['auc10'])} | {_f(r['auc20'])} | "
+                f"{_f(r['matches'])} | {_f(r['inlier_ratio'], 3)} | {_f(r['latency_ms'], 2)} |")
+        if onnx:
+            line += f" {_f(r.get('onnx_fp32_ms'))} |"
+        lines.append(line)
+    return "\n".join(lines) + "\n"
+
+
+def csv_text(rows: list[dict]) -> str:
+    fields = [*JSON_KEYS, "kind", "mcts", "pairs", "auc5_max", "auc10_max", "auc20_max", "parameters", "onnx_fp32_ms", "source"]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n", extrasaction="ignore")
+    w.writeheader()
+    for r in rows:
+        w.writerow(r)
+    return buf.getvalue()
+
+
+def add_parser(sub) -> None:
+    """The ``compare`` subcommand of ``aerovis-eval``."""
+    from aerovis_slam.classical import DETECTORS
+
+    from .pose import ESTIMATORS
+
+    p = sub.add_parser("compare", help="learned models and classical baselines in one run on the same pairs: one table, one JSON line each")
+    p.add_argument("--data", required=True, help="canonical sequence (.h5), a folder of them (pooled) or a simulator preset (bench, tiny)")
+    p.add_argument("--models", nargs="*", default=list(DEFAULT_MODELS),
+                   help="shipped names, checkpoints (.pt/.ckpt), exported bundle folders, or LABEL=PATH "
+                        "(default: the three shipped models; missing ones are listed)")
+    p.add_argument("--detectors", nargs="*", default=list(DEFAULT_DETECTORS), choices=sorted(DETECTORS),
+                   help="classical baselines (default: orb sift gftt_brief)")
+    p.add_argument("--classical-mcts", choices=("ne", "dt"), default="ne", help="time surface of the classical baselines (default ne)")
+    p.add_argument("--cam", default="cam0", help="camera (default cam0)")
+    p.add_argument("--rate-hz", type=float, default=20.0, help="frames per second along the GT (0: at every GT timestamp)")
+    p.add_argument("--max-pairs", type=int, default=None, help="evaluate only the first N pairs of each sequence")
+    p.add_argument("--top-k", type=int, default=None, help="keypoints per frame (default max(H, W) // 2)")
+    p.add_argument("--ransac-px", type=float, default=None, help="RANSAC threshold in px (default 1 up to 346 px wide, else 3)")
+    p.add_argument("--estimator", choices=sorted(ESTIMATORS), default="ransac", help="essential-matrix estimator (default ransac)")
+    p.add_argument("--max-dt-s", type=float, default=2.0, help="pair window in seconds (protocol: 2)")
+    p.add_argument("--max-angle-deg", type=float, default=45.0, help="largest rotation threshold in degrees (protocol: 45)")
+    p.add_argument("--onnx-latency", action="store_true",
+                   help="also export each learned model and time ONNX Runtime FP32 on a stereo batch at 424x240")
+    p.add_argument("--out", help="folder for compare.json, compare.md, compare.csv (and bundles/ with --onnx-latency)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars or table on stderr")
+
+
+def main_compare(args, argv: list[str] | None) -> int:
+    """Run ``aerovis-eval compare`` with parsed ``args``: JSON lines on stdout, the table on stderr."""
+    import os
+    import platform
+
+    from aerovis_train.search.metrics import write_json, write_text
+
+    host = {"machine": platform.machine(), "cpus": os.cpu_count(), "loadavg_start": os.getloadavg()}
+    methods, missing = resolve_models(args.models) if args.models else ([], [])
+    if missing:
+        print(f"aerovis-eval: compare: no weights installed for {', '.join(missing)} (aerovis_train/weights/<name>.pt): left out; "
+              f"pass a checkpoint as LABEL=PATH to include it", file=sys.stderr)
+    methods += [Method(d, d, "classical", None, args.classical_mcts, None) for d in args.detectors]
+    out = run_compare(args.data, methods, cam=args.cam, rate_hz=None if args.rate_hz == 0 else args.rate_hz, max_pairs=args.max_pairs,
+                      top_k=args.top_k, ransac_px=args.ransac_px, estimator=args.estimator, max_dt_s=args.max_dt_s,
+                      max_angle_deg=args.max_angle_deg, onnx_latency=args.onnx_latency,
+                      bundle_dir=Path(args.out) / "bundles" if args.out else None, progress=not args.quiet)
+    rows = out["rows"]
+    host["loadavg_end"] = os.getloadavg()
+    table = markdown_table(rows)
+    if not args.quiet:
+        print(f"\n{out['pairs']} pairs on {len(out['sequences'])} sequence(s) of {args.data}, the same for every method"
+              + (f"; missing: {', '.join(missing)}" if missing else "") + "\n" + table, file=sys.stderr)
+    for r in rows:
+        print(json.dumps(r))
+    sys.stdout.flush()
+    if args.out:
+        d = Path(args.out)
+        command = "aerovis-eval " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
+        write_json(d / "compare.json", {"command": command, "data": str(args.data), "pairs": out["pairs"], "sequences": out["sequences"],
+                                        "skipped": out["skipped"], "missing": missing, "t_start_us": out["t_start_us"], "rows": rows,
+                                        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "host": host, "config": vars(args),
+                                        "results": out["results"]})
+        write_text(d / "compare.md", f"`{command}`\n\n{out['pairs']} pairs on {len(out['sequences'])} sequence(s)"
+                   + (f"; missing: {', '.join(missing)}" if missing else "") + "\n\n" + table)
+        write_text(d / "compare.csv", csv_text(rows))
+    return 0
