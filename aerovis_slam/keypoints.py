@@ -126,10 +126,14 @@ def quantize_descriptors(desc: np.ndarray, scale: float) -> np.ndarray:
 
 
 def cosine_similarity(desc0: np.ndarray, desc1: np.ndarray) -> np.ndarray:
-    """(N0, N1) cosine similarity of float or int8 descriptors (int8 products accumulate in int32)."""
+    """(N0, N1) cosine similarity of float or int8 descriptors.
+
+    int8 products are accumulated in float32, which is exact here (each dot product is an integer
+    below 2^24 for D <= 1040) and runs on BLAS, where an int32 matrix product does not (~15x slower).
+    """
     if desc0.dtype == np.int8 or desc1.dtype == np.int8:
-        a, b = desc0.astype(np.int32), desc1.astype(np.int32)
-        dots = (a @ b.T).astype(np.float32)
+        a, b = desc0.astype(np.float32), desc1.astype(np.float32)
+        dots = a @ b.T
         na = np.sqrt((a * a).sum(1)).astype(np.float32)
         nb = np.sqrt((b * b).sum(1)).astype(np.float32)
         return dots / np.maximum(na[:, None] * nb[None, :], 1e-12)
@@ -169,3 +173,46 @@ def match_keypoints(kp0: Keypoints, kp1: Keypoints) -> np.ndarray:
         ms = bf.match(np.ascontiguousarray(d0), np.ascontiguousarray(d1))
         return np.array([(m.queryIdx, m.trainIdx) for m in ms], np.int64).reshape(-1, 2)
     return mutual_nearest_neighbours(d0, d1)
+
+
+def descriptor_similarity(desc0: np.ndarray, desc1: np.ndarray) -> np.ndarray:
+    """(N0, N1) float32 similarity in [-1, 1] of any descriptor kind, for thresholded matching.
+
+    Float and int8 descriptors: cosine similarity (:func:`cosine_similarity`). Binary descriptors
+    (uint8 bit strings, e.g. ORB): ``1 - hamming / bits``, so that one "higher is better" threshold
+    logic serves both kinds. The Hamming matrix is ``|a| + |b| - 2 a.b`` over unpacked bits (one
+    BLAS product): OpenCV's ``batchDistance`` cannot return the full matrix through its Python
+    binding, and ``BFMatcher`` only returns the nearest neighbours.
+    """
+    if len(desc0) == 0 or len(desc1) == 0:
+        return np.zeros((len(desc0), len(desc1)), np.float32)
+    if (desc0.dtype == np.uint8) != (desc1.dtype == np.uint8):
+        raise ValueError(f"cannot compare {desc0.dtype} descriptors with {desc1.dtype} descriptors")
+    if desc0.dtype == np.uint8:
+        a = np.unpackbits(desc0, axis=1).astype(np.float32)
+        b = np.unpackbits(desc1, axis=1).astype(np.float32)
+        hamming = a.sum(1)[:, None] + b.sum(1)[None, :] - 2.0 * (a @ b.T)
+        return (1.0 - hamming / a.shape[1]).astype(np.float32)
+    return cosine_similarity(desc0, desc1)
+
+
+def pair_similarity(desc0: np.ndarray, desc1: np.ndarray, i0: np.ndarray, i1: np.ndarray) -> np.ndarray:
+    """Similarity (P,) float32 of the pairs ``(desc0[i0], desc1[i1])``, as :func:`descriptor_similarity`.
+
+    For gated matching (e.g. within a projection window) only a few pairs per row are candidates,
+    and comparing just those is far cheaper than the full (N0, N1) matrix.
+    """
+    i0, i1 = np.asarray(i0, np.int64), np.asarray(i1, np.int64)
+    if len(i0) == 0:
+        return np.zeros(0, np.float32)
+    a, b = desc0[i0], desc1[i1]
+    if (a.dtype == np.uint8) != (b.dtype == np.uint8):
+        raise ValueError(f"cannot compare {a.dtype} descriptors with {b.dtype} descriptors")
+    if a.dtype == np.uint8:
+        hamming = np.unpackbits(np.bitwise_xor(a, b), axis=1).sum(1, dtype=np.int32)
+        return (1.0 - hamming / (8.0 * a.shape[1])).astype(np.float32)
+    a = a.astype(np.float32)
+    b = b.astype(np.float32)
+    num = np.einsum("pd,pd->p", a, b)
+    den = np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1)
+    return (num / np.maximum(den, 1e-12)).astype(np.float32)

@@ -1,0 +1,398 @@
+"""The estimator (gtsam): a fixed-lag keyframe smoother and the per-frame tracking optimisation.
+
+State of a keyframe ``k`` (OKVIS2's): pose ``X(k)`` = ``T_world_body`` (gtsam ``Pose3``), velocity
+``V(k)`` (world, m/s) and IMU biases ``B(k)`` (accelerometer m/s², gyroscope rad/s); landmarks ``L(j)``
+are world points (m). Factors:
+
+* ``CombinedImuFactor`` between consecutive keyframes (preintegrated IMU with bias random walk);
+* ``GenericProjectionFactorCal3_S2`` for every landmark observation in the left or right camera,
+  with ``body_P_sensor = T_body_cam`` and a robust (Huber or Cauchy) loss;
+* priors on the first state (and after a reset).
+
+:class:`KeyframeSmoother` keeps the last ``window_keyframes`` keyframes in a
+``BatchFixedLagSmoother`` (Levenberg-Marquardt; its iteration count is bounded and lowered to fit
+the time budget). Its "time" is the keyframe sequence number, so the lag counts keyframes, not
+seconds; a landmark's time is its newest observing keyframe, so it leaves the window with the last
+keyframe that saw it. Leaving variables are marginalised by gtsam into a linear prior on the rest.
+
+Frames between keyframes are estimated by :func:`track_frame` (motion-only, as in ORB-SLAM3's
+visual-inertial tracking): the current pose, velocity and bias with the IMU factor from the last
+keyframe (held at its smoother estimate) and the reprojections of map landmarks held fixed. This
+keeps the smoother small (no fill-in from non-keyframe observations), while every output pose still
+fuses vision and IMU.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from .cameras import StereoCameras
+from .config import BackendConfig
+
+X = gtsam.symbol_shorthand.X
+V = gtsam.symbol_shorthand.V
+B = gtsam.symbol_shorthand.B
+L = gtsam.symbol_shorthand.L
+
+
+@dataclass
+class NavEstimate:
+    """An estimated state. ``T_world_body`` (4, 4), ``v_world`` (3,) m/s, ``bias`` gtsam ConstantBias."""
+
+    T_world_body: np.ndarray
+    v_world: np.ndarray
+    bias: gtsam.imuBias.ConstantBias
+
+    def navstate(self) -> gtsam.NavState:
+        return gtsam.NavState(gtsam.Pose3(self.T_world_body), np.asarray(self.v_world, np.float64))
+
+    @classmethod
+    def from_navstate(cls, ns: gtsam.NavState, bias) -> "NavEstimate":
+        return cls(ns.pose().matrix(), np.asarray(ns.velocity(), np.float64).copy(), bias)
+
+
+@dataclass
+class Observations:
+    """Landmark observations of one frame.
+
+    Attributes:
+        landmark: (M,) int64 landmark ids. cam: (M,) int8 0 = left, 1 = right. xy: (M, 2) pixels.
+    """
+
+    landmark: np.ndarray
+    cam: np.ndarray
+    xy: np.ndarray
+
+    @classmethod
+    def empty(cls) -> "Observations":
+        return cls(np.zeros(0, np.int64), np.zeros(0, np.int8), np.zeros((0, 2)))
+
+    def __len__(self) -> int:
+        return len(self.landmark)
+
+    def subset(self, mask: np.ndarray) -> "Observations":
+        return Observations(self.landmark[mask], self.cam[mask], self.xy[mask])
+
+    @classmethod
+    def concatenate(cls, parts: list["Observations"]) -> "Observations":
+        parts = [p for p in parts if len(p)]
+        if not parts:
+            return cls.empty()
+        return cls(np.concatenate([p.landmark for p in parts]), np.concatenate([p.cam for p in parts]),
+                   np.concatenate([p.xy for p in parts]))
+
+
+def pixel_noise(cfg: BackendConfig) -> gtsam.noiseModel.Base:
+    """Isotropic pixel noise wrapped in the configured robust loss (threshold in sigmas)."""
+    base = gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma)
+    k = cfg.robust_k
+    est = gtsam.noiseModel.mEstimator.Huber.Create(k) if cfg.robust == "huber" else gtsam.noiseModel.mEstimator.Cauchy.Create(k)
+    return gtsam.noiseModel.Robust.Create(est, base)
+
+
+def bias_noise(acc_sigma: float, gyro_sigma: float) -> gtsam.noiseModel.Base:
+    return gtsam.noiseModel.Diagonal.Sigmas(np.array([acc_sigma] * 3 + [gyro_sigma] * 3))
+
+
+@dataclass
+class SmootherUpdate:
+    """What one keyframe update did: ``iterations``, ``time_ms``, ``error`` (after), ``landmarks`` in the window."""
+
+    iterations: int = 0
+    time_ms: float = 0.0
+    error: float = float("nan")
+    landmarks: int = 0
+    dropped_observations: int = 0
+
+
+class KeyframeSmoother:
+    """Fixed-lag smoother over keyframes (see the module docstring).
+
+    Args:
+        cfg: backend settings. cams: the stereo cameras. pim_params: IMU preintegration parameters.
+    """
+
+    def __init__(self, cfg: BackendConfig, cams: StereoCameras, pim_params: gtsam.PreintegrationCombinedParams):
+        self.cfg = cfg
+        self.cams = cams
+        self.pim_params = pim_params
+        self._cal = [c.cal3 for c in cams.cams]
+        self._bPs = [c.body_P_sensor for c in cams.cams]
+        self._noise = pixel_noise(cfg)
+        self._lm_prior = gtsam.noiseModel.Isotropic.Sigma(3, 5.0)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything (after a failure or a tracking loss the caller re-initialises)."""
+        lm = gtsam.LevenbergMarquardtParams()
+        lm.setMaxIterations(int(self.cfg.max_iterations))
+        # Lag in keyframe counts (the smoother's "time" is the keyframe sequence number).
+        self.smoother = gtsam.BatchFixedLagSmoother(float(self.cfg.window_keyframes) - 0.5, lm)
+        self.kf_ids: list[int] = []           # keyframes in the window (oldest first)
+        self.kf_seq: dict[int, int] = {}      # keyframe id -> sequence number (smoother time)
+        self.lm_key: dict[int, int] = {}      # landmark id -> gtsam key, for landmarks in the window
+        self.lm_time: dict[int, int] = {}     # landmark id -> newest observing keyframe sequence number
+        self.lm_obs: dict[int, list[int]] = {}  # landmark id -> sequence numbers of its observation factors
+        self._next_key = 0
+        self._seq = 0
+        self._iter_ms = 5.0                   # running estimate of one LM iteration's cost
+        self.estimates: dict[int, NavEstimate] = {}
+        self.initialized = False
+
+    # ------------------------------------------------------------------------------------------
+    def initialize(self, kf_id: int, t_s: float, state: NavEstimate, *, sigma_rollpitch_rad: float,
+                   sigma_yaw_rad: float = 1e-3, sigma_pos_m: float = 1e-3, sigma_vel: float,
+                   sigma_acc_bias: float, sigma_gyro_bias: float) -> None:
+        """Start the window at keyframe ``kf_id`` with priors on its state.
+
+        The pose prior is tight on position and yaw (the unobservable gauge of visual-inertial
+        odometry) and looser on roll and pitch (gravity makes them observable). gtsam's Pose3
+        tangent is (rotation, translation) in the body frame; roll/pitch/yaw are taken as rotation
+        about body axes here, which is exact for a level body and close for small tilts.
+        """
+        self.reset()
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        pose = gtsam.Pose3(state.T_world_body)
+        # world-frame sigmas: yaw about world z, roll/pitch about world x/y, rotated into the body
+        R = state.T_world_body[:3, :3]
+        cov_w = np.diag([sigma_rollpitch_rad ** 2, sigma_rollpitch_rad ** 2, sigma_yaw_rad ** 2])
+        cov_rot = R.T @ cov_w @ R
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = cov_rot
+        cov[3:, 3:] = np.eye(3) * sigma_pos_m ** 2
+        graph.add(gtsam.PriorFactorPose3(X(kf_id), pose, gtsam.noiseModel.Gaussian.Covariance(cov)))
+        graph.add(gtsam.PriorFactorVector(V(kf_id), np.asarray(state.v_world, np.float64),
+                                          gtsam.noiseModel.Isotropic.Sigma(3, sigma_vel)))
+        graph.add(gtsam.PriorFactorConstantBias(B(kf_id), state.bias, bias_noise(sigma_acc_bias, sigma_gyro_bias)))
+        values.insert(X(kf_id), pose)
+        values.insert(V(kf_id), np.asarray(state.v_world, np.float64))
+        values.insert(B(kf_id), state.bias)
+        stamps = {X(kf_id): 0.0, V(kf_id): 0.0, B(kf_id): 0.0}
+        self.smoother.update(graph, values, stamps)
+        self.kf_ids = [kf_id]
+        self.kf_seq = {kf_id: 0}
+        self._seq = 0
+        self.estimates = {kf_id: NavEstimate(state.T_world_body.copy(), np.asarray(state.v_world, np.float64).copy(), state.bias)}
+        self.initialized = True
+
+    def _landmark_key(self, lm_id: int) -> int:
+        key = L(self._next_key)
+        self._next_key += 1
+        self.lm_key[lm_id] = key
+        return key
+
+    def add_keyframe(self, kf_id: int, pim: gtsam.PreintegratedCombinedMeasurements, guess: NavEstimate,
+                     obs: Observations, landmark_positions: dict[int, np.ndarray]) -> SmootherUpdate:
+        """Add keyframe ``kf_id`` (IMU factor from the previous keyframe) and its observations, optimise.
+
+        Args:
+            pim: IMU preintegration from the previous keyframe's time to this one's.
+            guess: initial state of the new keyframe (from tracking).
+            obs: its landmark observations (left and right).
+            landmark_positions: world positions (3,) of every landmark in ``obs`` (initial values of
+                landmarks new to the window).
+        Returns:
+            a :class:`SmootherUpdate`. Raises RuntimeError (gtsam's) when the system is degenerate.
+        """
+        if not self.initialized:
+            raise RuntimeError("KeyframeSmoother.add_keyframe before initialize")
+        prev = self.kf_ids[-1]
+        self._seq += 1
+        seq = self._seq
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        stamps: dict[int, float] = {}
+        graph.add(gtsam.CombinedImuFactor(X(prev), V(prev), X(kf_id), V(kf_id), B(prev), B(kf_id), pim))
+        values.insert(X(kf_id), gtsam.Pose3(guess.T_world_body))
+        values.insert(V(kf_id), np.asarray(guess.v_world, np.float64))
+        values.insert(B(kf_id), guess.bias)
+        for k in (X(kf_id), V(kf_id), B(kf_id)):
+            stamps[k] = float(seq)
+        # Landmarks: reuse the window's variable, or add one when this keyframe constrains it alone
+        # (seen by both cameras: a stereo pair fixes a point); others only help tracking.
+        ids, counts = np.unique(obs.landmark, return_counts=True)
+        stereo_seen = set(ids[counts >= 2].tolist())
+        dropped = 0
+        new_keys = 0
+        for j, cam, xy in zip(obs.landmark.tolist(), obs.cam.tolist(), obs.xy):
+            key = self.lm_key.get(j)
+            if key is None:
+                if j not in stereo_seen or j not in landmark_positions:
+                    dropped += 1
+                    continue
+                key = self._landmark_key(j)
+                p = np.asarray(landmark_positions[j], np.float64)
+                values.insert(key, p)
+                # A weak prior (metres) keeps the system determinate when an observation degenerates
+                # (a mismatch pulled behind a camera gives a projection factor without gradient);
+                # against pixel-accurate stereo it weighs nothing.
+                graph.add(gtsam.PriorFactorPoint3(key, p, self._lm_prior))
+                new_keys += 1
+            graph.add(gtsam.GenericProjectionFactorCal3_S2(np.asarray(xy, np.float64), self._noise, X(kf_id), key,
+                                                           self._cal[cam], False, False, self._bPs[cam]))
+            stamps[key] = float(seq)
+            self.lm_time[j] = seq
+            self.lm_obs.setdefault(j, []).append(seq)
+        remove = self._observations_to_drop(seq)
+        # Iteration budget: as many LM iterations as the measured cost allows (at least one).
+        n_iter = int(np.clip(self.cfg.time_budget_ms / max(self._iter_ms, 1e-3), 1, self.cfg.max_iterations))
+        self.smoother.params().setMaxIterations(n_iter)
+        t0 = time.perf_counter()
+        result = self.smoother.update(graph, values, stamps, remove)
+        dt_ms = (time.perf_counter() - t0) * 1e3
+        iters = max(int(result.getIterations()), 1)
+        self._iter_ms = 0.7 * self._iter_ms + 0.3 * dt_ms / iters
+        self.kf_ids.append(kf_id)
+        self.kf_seq[kf_id] = seq
+        # forget what the smoother marginalised
+        horizon = seq - (self.cfg.window_keyframes - 0.5)
+        self.kf_ids = [k for k in self.kf_ids if self.kf_seq[k] >= horizon]
+        for j in [j for j, s in self.lm_time.items() if s < horizon]:
+            del self.lm_time[j]
+            self.lm_key.pop(j, None)
+            self.lm_obs.pop(j, None)
+        est = self.smoother.calculateEstimate()
+        self.estimates = {k: NavEstimate(est.atPose3(X(k)).matrix(), np.asarray(est.atVector(V(k))).copy(),
+                                         est.atConstantBias(B(k))) for k in self.kf_ids}
+        self._values = est
+        return SmootherUpdate(iterations=iters, time_ms=dt_ms, error=float(result.getError()),
+                              landmarks=len(self.lm_key), dropped_observations=dropped)
+
+    def _observations_to_drop(self, seq: int) -> list[int]:
+        """Factor slots of the observations that keyframes leaving at this update made of staying landmarks.
+
+        Marginalising a keyframe together with its observations of landmarks that stay in the window
+        would join all those landmarks in one dense prior (fill-in that grows with every
+        marginalisation and slows every later update). As OKVIS does, those observations are dropped
+        first; what the keyframe knew about the motion reaches the window through its IMU factor.
+        """
+        horizon = seq - (self.cfg.window_keyframes - 0.5)
+        leaving = {X(k) for k in self.kf_ids if self.kf_seq[k] < horizon}
+        if not leaving:
+            return []
+        # a staying landmark must keep two observations (a single ray leaves its depth free)
+        staying = {}
+        for j, s in self.lm_time.items():
+            if s >= horizon and j in self.lm_key:
+                kept = [q for q in self.lm_obs.get(j, []) if q >= horizon]
+                if len(kept) >= 2:
+                    staying[self.lm_key[j]] = j
+        graph = self.smoother.getFactors()
+        out = []
+        for i in range(graph.size()):
+            if not graph.exists(i):
+                continue
+            keys = graph.at(i).keys()
+            if len(keys) == 2 and keys[0] in leaving and keys[1] in staying:
+                out.append(i)
+        for key, j in staying.items():
+            self.lm_obs[j] = [q for q in self.lm_obs[j] if q >= horizon]
+        return out
+
+    def landmark_estimates(self) -> dict[int, np.ndarray]:
+        """World positions of the landmarks in the window after the last update."""
+        vals = getattr(self, "_values", None)
+        if vals is None:
+            return {}
+        return {j: np.asarray(vals.atPoint3(k)) for j, k in self.lm_key.items() if vals.exists(k)}
+
+    @property
+    def latest(self) -> tuple[int, NavEstimate]:
+        k = self.kf_ids[-1]
+        return k, self.estimates[k]
+
+
+@dataclass
+class TrackResult:
+    """Outcome of :func:`track_frame`: the state, per-observation inlier flags and timing."""
+
+    state: NavEstimate
+    inliers: np.ndarray
+    iterations: int = 0
+    error: float = float("nan")
+    extra: dict = field(default_factory=dict)
+
+
+def track_frame(cams: StereoCameras, cfg: BackendConfig, kf_state: NavEstimate,
+                pim: gtsam.PreintegratedCombinedMeasurements, guess: NavEstimate, obs: Observations,
+                points_world: np.ndarray, *, max_reproj_px: float, kf_sigmas=(0.003, 0.01, 0.05),
+                rotation_prior: tuple[np.ndarray, float] | None = None, use: np.ndarray | None = None) -> TrackResult:
+    """Motion-only estimate of the current frame from the IMU and fixed map landmarks.
+
+    Args:
+        kf_state: the last keyframe's smoother estimate, held with priors of ``kf_sigmas``
+            (rotation rad, position m, velocity m/s: the size of its remaining uncertainty).
+        pim: preintegration from the keyframe's time to now (with ``kf_state.bias`` as its bias estimate).
+        guess: initial value (the IMU prediction or the RANSAC pose).
+        obs: the frame's RANSAC-inlier observations; ``points_world`` (M, 3) their landmarks.
+        max_reproj_px: observations with a larger final reprojection error are flagged outliers.
+        rotation_prior: optional ``(R_world_body, sigma_rad)`` from the rotation-only 2D-2D model
+            (pure rotation: the relative rotation is known, the translation is not).
+        use: indices of the observations to optimise with (default all; the cost grows with each
+            one); the inlier flags cover all of ``obs``.
+    """
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    k0, k1 = 0, 1
+    s_rot, s_pos, s_vel = kf_sigmas
+    graph.add(gtsam.PriorFactorPose3(X(k0), gtsam.Pose3(kf_state.T_world_body),
+                                     gtsam.noiseModel.Diagonal.Sigmas(np.array([s_rot] * 3 + [s_pos] * 3))))
+    graph.add(gtsam.PriorFactorVector(V(k0), np.asarray(kf_state.v_world, np.float64), gtsam.noiseModel.Isotropic.Sigma(3, s_vel)))
+    graph.add(gtsam.PriorFactorConstantBias(B(k0), kf_state.bias, bias_noise(1e-3, 1e-4)))
+    graph.add(gtsam.CombinedImuFactor(X(k0), V(k0), X(k1), V(k1), B(k0), B(k1), pim))
+    values.insert(X(k0), gtsam.Pose3(kf_state.T_world_body))
+    values.insert(V(k0), np.asarray(kf_state.v_world, np.float64))
+    values.insert(B(k0), kf_state.bias)
+    values.insert(X(k1), gtsam.Pose3(guess.T_world_body))
+    values.insert(V(k1), np.asarray(guess.v_world, np.float64))
+    values.insert(B(k1), kf_state.bias)
+    if rotation_prior is not None:
+        R_wb, sigma = rotation_prior
+        big = 1e3  # translation free: only the rotation is constrained
+        T = guess.T_world_body.copy()
+        T[:3, :3] = R_wb
+        graph.add(gtsam.PriorFactorPose3(X(k1), gtsam.Pose3(T), gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma] * 3 + [big] * 3))))
+    noise = pixel_noise(cfg)
+    # Landmarks are fixed: a tight prior (1 mm) on each keeps them in place while the solver
+    # eliminates them cheaply (gtsam's Python API has no pose-only projection factor).
+    lm_noise = gtsam.noiseModel.Isotropic.Sigma(3, 1e-3)
+    sel = np.arange(len(obs)) if use is None else np.asarray(use, np.int64)
+    lm_sel = obs.landmark[sel]
+    uniq, first, inv = np.unique(lm_sel, return_index=True, return_inverse=True) if len(sel) else (
+        np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64))
+    for u in range(len(uniq)):
+        p = np.asarray(points_world[sel[first[u]]], np.float64)
+        values.insert(L(u), p)
+        graph.add(gtsam.PriorFactorPoint3(L(u), p, lm_noise))
+    cal = [c.cal3 for c in cams.cams]
+    bps = [c.body_P_sensor for c in cams.cams]
+    for k, i in enumerate(sel):
+        c = int(obs.cam[i])
+        graph.add(gtsam.GenericProjectionFactorCal3_S2(np.asarray(obs.xy[i], np.float64), noise, X(k1), L(int(inv[k])),
+                                                       cal[c], False, False, bps[c]))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(int(cfg.tracking_iterations))
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    est = opt.optimize()
+    pose = est.atPose3(X(k1))
+    state = NavEstimate(pose.matrix(), np.asarray(est.atVector(V(k1))).copy(), est.atConstantBias(B(k1)))
+    inl = np.zeros(len(obs), bool)
+    if len(obs):
+        T_wb = pose.matrix()
+        for c in (0, 1):
+            m = obs.cam == c
+            if not m.any():
+                continue
+            T_cw = np.linalg.inv(T_wb @ cams.cams[c].T_body_cam)
+            p = points_world[m] @ T_cw[:3, :3].T + T_cw[:3, 3]
+            K = cams.cams[c].K
+            with np.errstate(divide="ignore", invalid="ignore"):
+                uv = p[:, :2] / p[:, 2:3] * np.diag(K)[:2] + K[:2, 2]
+            err = np.linalg.norm(uv - obs.xy[m], axis=1)
+            inl[m] = (p[:, 2] > 0) & (np.nan_to_num(err, nan=np.inf) <= max_reproj_px)
+    return TrackResult(state, inl, iterations=int(opt.iterations()), error=float(opt.error()))

@@ -1,0 +1,293 @@
+"""Running the SLAM runtime on sequences and benchmarking it (``aerovis-slam run`` / ``bench``).
+
+:func:`run_sequence` is one run with its outputs: ``traj.txt`` (TUM, ``T_world_body``; named
+``traj.partial.txt`` and flagged in its header when the run stopped early), ``metrics.json``
+(:mod:`~aerovis_slam.slam.report`) and ``traj.png``.
+
+:func:`run_bench` runs every sequence in every mode with every detector (the learned bundle and a
+classical detector on the same time surfaces) and :func:`format_table` writes the results in the
+form of the paper's Table I: ATE RMSE in cm per sequence and mode, failures marked. A run counts
+as
+
+* ``failed`` when the pipeline reports a failure or raises,
+* ``partial`` when it stopped before the end of the sequence,
+* ``diverged`` when its ATE RMSE exceeds ``diverge_pct`` % of the path length and ``diverge_min_m``
+  (the paper marks crashes and divergence alike as "failed"; keeping the reason helps debugging),
+* ``no_gt`` when the sequence has no ground truth, else ``ok``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DataError
+from ..measurements import PoseSamples
+from .report import compute_metrics, plot_trajectory, write_metrics
+from .trajectory import atomic_write_text, write_tum
+
+TRAJ_FILE = "traj.txt"
+PARTIAL_TRAJ_FILE = "traj.partial.txt"
+METRICS_FILE = "metrics.json"
+PLOT_FILE = "traj.png"
+CLASSICAL = ("orb", "sift", "gftt_brief")
+MODE_CONFIG = {"sync": "accurate", "async": "realtime", "live": "realtime"}  # the paper's two settings
+BENCH_FIELDS = ("sequence", "mode", "detector", "status", "ate_rmse_m", "ate_pct", "path_length_m", "rate_hz", "loop_closures")
+
+
+def make_detector(model: str | os.PathLike | None = None, classical: str | None = None, *, top_k: int | None = None,
+                  like=None):
+    """The detector of a run: a bundle (``model``; the shipped default when both are None) or a
+    classical kind (``orb``, ``sift``, ``gftt_brief``) computed on the same time surface as ``like``
+    (a detector) when given.
+
+    Raises:
+        DataError: both given, an unknown classical kind, or a bad bundle.
+    """
+    if model is not None and classical is not None:
+        raise DataError(None, "give either --model (a bundle) or --detector (a classical kind), not both")
+    if classical is not None:
+        if classical not in CLASSICAL:
+            raise DataError(None, f"--detector {classical!r}: expected one of {list(CLASSICAL)}")
+        from .detectors import StereoClassicalDetector
+
+        kw = {"mcts_kind": like.mcts_kind, "mcts_params": tuple(like.mcts_params)} if like is not None else {}
+        return StereoClassicalDetector(classical, **({"top_k": top_k} if top_k else {}), **kw)
+    from ..bundle import BundleDetector, default_bundle_path
+
+    return BundleDetector(model if model is not None else default_bundle_path(), top_k=top_k)
+
+
+def make_loop_closer(detector, config=None):
+    """A :class:`~aerovis_slam.slam.loop.LoopCloser` with the shipped vocabulary of ``detector``
+    (by name; learnt online when there is none) and the ``loop`` section of ``config`` if it has one."""
+    from .loop import LoopCloser, vocabulary_for
+
+    section = getattr(config, "loop", None)
+    if dataclasses.is_dataclass(section):
+        section = dataclasses.asdict(section)
+    return LoopCloser(config=section or None, vocabulary=vocabulary_for(getattr(detector, "name", "")))
+
+
+def _run_slam(*args, **kwargs):
+    """:func:`aerovis_slam.slam.pipeline.run_slam` (one indirection, so tests can stand in for it)."""
+    from .pipeline import run_slam
+
+    return run_slam(*args, **kwargs)
+
+
+def _load_gt(sequence: Path) -> PoseSamples | None:
+    from ..io.sequence import Sequence
+
+    with Sequence(sequence) as seq:
+        return seq.gt
+
+
+def run_sequence(sequence: str | os.PathLike, detector, config, out_dir: str | os.PathLike, *, mode: str | None = None,
+                 loop: bool = True, progress: bool = True, stop_event: threading.Event | None = None,
+                 plot: bool = True) -> dict:
+    """Run the SLAM pipeline on one sequence and write its outputs into ``out_dir``.
+
+    Args:
+        sequence: canonical ``.h5``.
+        detector: see :func:`make_detector`.
+        config: a :class:`~aerovis_slam.slam.config.SlamConfig`.
+        mode: ``sync`` | ``async`` | ``live`` (default: the config's).
+        loop: enable loop closure.
+        stop_event: set it to stop early (the outputs then say ``complete: false``).
+
+    Returns:
+        The metrics dict (as written to ``metrics.json``), with ``out_dir`` and ``trajectory_file``.
+    """
+    sequence = Path(sequence)
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise DataError(out, f"cannot create output folder ({exc.strerror})") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise DataError(out, "output folder is not writable")
+    gt = _load_gt(sequence)  # fails early (DataError) on a missing or foreign file
+    mode = mode or getattr(config, "mode", "sync")
+    closer = make_loop_closer(detector, config) if loop else None
+    try:
+        result = _run_slam(sequence, detector, config, mode=mode, loop_closer=closer, progress=progress, stop_event=stop_event)
+    finally:
+        if closer is not None:
+            closer.close()
+    extra = {"loop": closer.summary() if closer is not None else None,
+             "keyframes": getattr(result, "keyframes", None), "pipeline_info": getattr(result, "info", None)}
+    if closer is not None:
+        result.warnings.extend(w for w in closer.warnings if w not in result.warnings)
+    metrics, ate_se3 = compute_metrics(result, gt, sequence=sequence, detector=getattr(detector, "name", None), mode=mode,
+                                       config=getattr(config, "name", None), extra=extra)
+    complete = bool(result.complete)
+    name = TRAJ_FILE if complete else PARTIAL_TRAJ_FILE
+    # never leave the other name from an earlier run next to these results
+    (out / (PARTIAL_TRAJ_FILE if complete else TRAJ_FILE)).unlink(missing_ok=True)
+    header = [f"aerovis-slam trajectory of {sequence.name}: T_world_body (body = IMU frame), t [s] tx ty tz [m] qx qy qz qw",
+              f"detector {metrics['detector']}, mode {mode}, config {metrics['config']}, status {result.status}"]
+    write_tum(out / name, result.t_us, result.pose7, comments=header, partial=not complete)
+    metrics["trajectory_file"] = name
+    metrics["out_dir"] = str(out)
+    write_metrics(out / METRICS_FILE, metrics)
+    if plot:
+        loops = [c["t_s"] for c in (extra["loop"] or {}).get("closures", [])]
+        title = f"{sequence.stem} | {metrics['detector']} | {mode}" + ("" if complete else " | PARTIAL")
+        plot_trajectory(out / PLOT_FILE, gt, ate_se3, est=PoseSamples(result.t_us, result.pose7), title=title, loop_times_s=loops)
+    return metrics
+
+
+def classify(metrics: dict, *, diverge_pct: float = 25.0, diverge_min_m: float = 0.10) -> str:
+    """``ok`` | ``failed`` | ``partial`` | ``diverged`` | ``no_gt`` of one run (see the module docstring)."""
+    status = str(metrics.get("status", ""))
+    if status.startswith("failed") or not (status.startswith("ok") or status.startswith("stopped")):
+        return "failed"
+    if not metrics.get("complete", False):
+        return "partial"  # stopped early (Ctrl-C, or the event stream ended before the sequence)
+    ate_m, length = metrics.get("ate_rmse_m"), metrics.get("path_length_m")
+    if ate_m is None:
+        return "no_gt"
+    if ate_m > max(diverge_pct / 100.0 * (length or 0.0), diverge_min_m):
+        return "diverged"
+    return "ok"
+
+
+def bench_row(sequence: str, mode: str, detector: str, metrics: dict | None, status: str) -> dict:
+    """One ``bench.json`` entry (:data:`BENCH_FIELDS`)."""
+    m = metrics or {}
+    return {"sequence": sequence, "mode": mode, "detector": detector, "status": status,
+            "ate_rmse_m": m.get("ate_rmse_m"), "ate_pct": m.get("ate_pct"), "path_length_m": m.get("path_length_m"),
+            "rate_hz": m.get("rate_hz"), "loop_closures": m.get("loop_closures", 0)}
+
+
+def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str | os.PathLike, *,
+              modes: tuple[str, ...] = ("sync", "async"), config: str | None = None, loop: bool = True, resume: bool = False,
+              progress: bool = True, diverge_pct: float = 25.0, diverge_min_m: float = 0.10, log=None,
+              stop_event: threading.Event | None = None) -> list[dict]:
+    """Run every sequence x detector x mode; write ``bench.json`` and ``table.md`` in ``out_dir``.
+
+    Args:
+        detectors: detector objects (each run uses its ``name`` in paths and rows).
+        config: one setting for all modes (default: ``accurate`` for sync, ``realtime`` for async,
+            the paper's accuracy and real-time settings).
+        resume: reuse runs whose ``metrics.json`` exists in their folder.
+        log: callable receiving one human line per run (e.g. ``tqdm.write``).
+        stop_event: when set, the current run stops early (recorded as ``partial``) and no further run starts.
+
+    Returns:
+        The ``bench.json`` rows. Each run's outputs are in ``out_dir/<sequence>/<detector>-<mode>/``.
+    """
+    from tqdm import tqdm
+
+    from .config import load_config
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = [(Path(s), d, m) for s in sequences for m in modes for d in detectors]
+    rows: list[dict] = []
+    bar = tqdm(jobs, desc="aerovis-slam bench", unit="run", disable=not progress)
+    for seq, det, mode in bar:
+        name = getattr(det, "name", str(det))
+        bar.set_postfix_str(f"{seq.stem} {name} {mode}")
+        run_dir = out / seq.stem / f"{name}-{mode}"
+        metrics = None
+        if resume and (run_dir / METRICS_FILE).is_file():
+            metrics = json.loads((run_dir / METRICS_FILE).read_text())
+        else:
+            try:
+                cfg = load_config(config or MODE_CONFIG[mode])
+                metrics = run_sequence(seq, det, cfg, run_dir, mode=mode, loop=loop, progress=False, stop_event=stop_event)
+            except KeyboardInterrupt:
+                raise
+            except Exception as exc:  # one crashing run is a "failed" cell, not the end of the benchmark
+                metrics = {"status": f"failed: {type(exc).__name__}: {exc}", "complete": False}
+        status = classify(metrics, diverge_pct=diverge_pct, diverge_min_m=diverge_min_m)
+        rows.append(bench_row(seq.stem, mode, name, metrics, status))
+        if log is not None:
+            r = rows[-1]
+            ate_txt = f"{r['ate_rmse_m'] * 100:.2f} cm" if r["ate_rmse_m"] is not None else "-"
+            rate_txt = f"{r['rate_hz']:.1f} Hz" if r["rate_hz"] else "-"
+            log(f"{seq.stem} {name} {mode}: {status}, ATE {ate_txt}, {rate_txt}, {r['loop_closures']} loop closure(s)"
+                + ("" if status != "failed" else f" ({metrics.get('status')})"))
+        # rewrite after every run: an interrupted benchmark keeps what it measured
+        atomic_write_text(out / "bench.json", json.dumps(rows, indent=2) + "\n")
+        atomic_write_text(out / "table.md", format_table(rows))
+        if stop_event is not None and stop_event.is_set():
+            break
+    return rows
+
+
+def format_table(rows: list[dict]) -> str:
+    """Markdown tables in the form of the paper's Table I: ATE RMSE [cm] per sequence (rows) and
+    detector x mode (columns), the best per row in bold, failures named; then processing rates."""
+    dets = list(dict.fromkeys(r["detector"] for r in rows))
+    modes = list(dict.fromkeys(r["mode"] for r in rows))
+    seqs = list(dict.fromkeys(r["sequence"] for r in rows))
+    cols = [(d, m) for d in dets for m in modes]
+    cell = {(r["sequence"], r["detector"], r["mode"]): r for r in rows}
+
+    def header(path_column: bool) -> list[str]:
+        return ["| Sequence | " + ("path [m] | " if path_column else "") + " | ".join(f"{d} {m}" for d, m in cols) + " |",
+                "|---|" + ("---:|" if path_column else "") + "---:|" * len(cols)]
+
+    lines = ["# aerovis-slam bench", "", "RMS of absolute trajectory error (ATE) [cm] after SE(3) alignment; "
+             "in brackets: % of the ground-truth path length. Crashed runs are marked failed, diverged ones "
+             "diverged; a run that stopped before the end shows its ATE marked partial.", ""]
+    lines += header(True)
+    for s in seqs:
+        length = next((cell[k]["path_length_m"] for k in cell if k[0] == s and cell[k]["path_length_m"]), None)
+        oks = [cell[(s, d, m)]["ate_rmse_m"] for d, m in cols if (s, d, m) in cell and cell[(s, d, m)]["status"] == "ok"]
+        best = min(oks) if oks else None
+        vals = []
+        for d, m in cols:
+            r = cell.get((s, d, m))
+            if r is None:
+                vals.append("")
+            elif r["status"] in ("failed", "no_gt") or r["ate_rmse_m"] is None:
+                vals.append(r["status"])
+            else:
+                txt = f"{r['ate_rmse_m'] * 100:.2f}" + (f" ({r['ate_pct']:.2f} %)" if r["ate_pct"] is not None else "")
+                if r["status"] != "ok":
+                    txt = f"{r['status']}: {txt}"
+                vals.append(f"**{txt}**" if r["status"] == "ok" and r["ate_rmse_m"] == best and len(oks) > 1 else txt)
+        lines.append(f"| {s} | {length:.2f} | " if length else f"| {s} | - | ")
+        lines[-1] += " | ".join(vals) + " |"
+    lines += ["", "Processing rate [Hz] (poses per second of processing) and loop closures (LC).", ""]
+    lines += header(False)
+    for s in seqs:
+        vals = []
+        for d, m in cols:
+            r = cell.get((s, d, m))
+            vals.append("" if r is None or r["rate_hz"] is None else f"{r['rate_hz']:.1f} ({r['loop_closures']} LC)")
+        lines.append(f"| {s} | " + " | ".join(vals) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def summarize(rows: list[dict]) -> dict:
+    """Per detector and mode: runs, ok runs, median ATE (cm) and median rate over the ok runs, and
+    ``best_on``: on how many sequences it has the lowest ATE of all detectors in that mode (a run
+    that is not ``ok`` loses to any ``ok`` one)."""
+    out = {}
+    wins: dict[tuple[str, str], int] = {}
+    for s in dict.fromkeys(r["sequence"] for r in rows):
+        for m in dict.fromkeys(r["mode"] for r in rows):
+            ok = [r for r in rows if r["sequence"] == s and r["mode"] == m and r["status"] == "ok"]
+            if ok:
+                best = min(ok, key=lambda r: r["ate_rmse_m"])
+                wins[(best["detector"], m)] = wins.get((best["detector"], m), 0) + 1
+    for key in dict.fromkeys((r["detector"], r["mode"]) for r in rows):
+        rs = [r for r in rows if (r["detector"], r["mode"]) == key]
+        ok = [r for r in rs if r["status"] == "ok"]
+        out[f"{key[0]}/{key[1]}"] = {
+            "runs": len(rs), "ok": len(ok),
+            "ate_cm_median": float(np.median([r["ate_rmse_m"] for r in ok]) * 100) if ok else None,
+            "rate_hz_median": float(np.median([r["rate_hz"] for r in ok if r["rate_hz"]])) if any(r["rate_hz"] for r in ok) else None,
+            "best_on": wins.get(key, 0),
+        }
+    return out

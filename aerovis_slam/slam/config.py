@@ -1,0 +1,334 @@
+"""SLAM configuration: :class:`SlamConfig` (nested dataclasses) loaded from ``conf/slam/<name>.yaml``.
+
+Two shipped settings (paper Sec. III-C / REFERENCE section 5):
+
+* ``realtime``: the asynchronous setting: the frontend always takes the newest state, at most
+  424x240 pixels, fewer keypoints, a small backend window and a tight iteration/time budget.
+* ``accurate``: synchronous processing at a fixed 50 Hz (every step processed, however long it
+  takes), more keypoints and backend iterations.
+
+A YAML file overrides any subset of the defaults below; an unknown key is an error that names it
+(a typo must never silently fall back to a default).
+
+Example:
+    >>> cfg = load_config("accurate")
+    >>> cfg.mode, cfg.rate_hz, cfg.backend.window_keyframes >= 3
+    ('sync', 50.0, True)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from ..errors import DataError
+
+#: Folder of the shipped SLAM settings (``<repo>/conf/slam``).
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "conf" / "slam"
+MODES = ("sync", "async", "live")
+
+
+@dataclass
+class InputConfig:
+    """Preprocessing: which events reach the timestamp buffers and at what resolution.
+
+    Attributes:
+        max_width, max_height: MCTS resolution cap; larger sensors are downsampled (area binning,
+            intrinsics scaled; the paper's drone goes 1280x720 -> 424x240).
+        rate_cap_mev_s: per-camera event-rate cap in Mev/s (None: none); the paper caps at 35.
+        chunk_events: events per read from the file (the prefetch thread's unit).
+        prefetch_chunks: chunks read ahead per camera (bounded memory).
+    """
+
+    max_width: int = 424
+    max_height: int = 240
+    rate_cap_mev_s: float | None = 35.0
+    chunk_events: int = 200_000
+    prefetch_chunks: int = 4
+
+
+@dataclass
+class DetectorConfig:
+    """Keypoint budget and the classical fallback.
+
+    Attributes:
+        top_k: keypoints per image (None: the detector's own default).
+        threshold: detection threshold of learned detectors (None: the bundle's). Event scenes with
+            large textureless areas give few keypoints above the bundle's 0.01; the runtime then
+            lowers it and relies on ``top_k`` and matching to keep the good ones.
+        classical: classical detector kind used when no bundle is given (``orb``, ``sift``, ``gftt_brief``).
+    """
+
+    top_k: int | None = 300
+    threshold: float | None = 0.001
+    classical: str = "orb"
+
+
+@dataclass
+class MatchingConfig:
+    """Stereo, map and temporal matching thresholds (pixels at the MCTS resolution).
+
+    Attributes:
+        min_similarity: minimum cosine similarity of float/int8 descriptors for a match.
+        min_similarity_binary: minimum ``1 - hamming / bits`` of binary (ORB) descriptors.
+        ratio: second-best / best similarity gap: a match needs ``best - second >= ratio * (1 - best)``
+            (0 disables; a Lowe-like test expressed on similarities).
+        stereo_epipolar_px: maximum distance of a right keypoint to the left keypoint's epipolar line
+            (unrectified pairs, matched by descriptors).
+        stereo_min_ncc: minimum patch correlation of the row search in rectified pairs.
+        min_disparity_px: left-right disparity below this gives no landmark (depth too uncertain).
+        max_depth_m: landmarks farther than this are not created.
+        window_px: radius of the projection window for map matching at the nominal prediction.
+        window_px_lost: radius after a tracking failure (the IMU-only prediction is worse).
+        max_reproj_px: a landmark observation with a larger reprojection error after tracking is dropped.
+        max_landmark_age_s: landmarks older than this are no longer matched (None: no limit). Event
+            keypoints drift along edges as a track ages (measured on the simulator: median error
+            1.7 px under 50 ms, 2.6 px at 0.4-1 s, 5 px beyond 1 s), and old, drifted tracks bias the
+            motion; fresh stereo landmarks replace them.
+        update_descriptors: a landmark's descriptor follows its newest keyframe observation (else it
+            keeps the one it was created with, which cannot drift onto a neighbouring feature).
+    """
+
+    min_similarity: float = 0.75
+    min_similarity_binary: float = 0.7
+    ratio: float = 0.0
+    stereo_epipolar_px: float = 1.5
+    stereo_min_ncc: float = 0.75
+    min_disparity_px: float = 1.0
+    max_depth_m: float = 30.0
+    window_px: float = 10.0
+    window_px_lost: float = 30.0
+    max_reproj_px: float = 3.0
+    max_landmark_age_s: float | None = None
+    update_descriptors: bool = True
+
+
+@dataclass
+class RansacConfig:
+    """Outlier rejection.
+
+    Attributes:
+        pnp_reproj_px: 3D-2D RANSAC inlier threshold.
+        pnp_iterations, confidence: RANSAC effort.
+        min_inliers: fewer 3D-2D inliers means the frame is not tracked visually.
+        rotation_threshold_deg: angular inlier threshold of the rotation-only 2D-2D model.
+        rotation_min_inliers: inliers for an accepted rotation-only estimate.
+    """
+
+    pnp_reproj_px: float = 2.5
+    pnp_iterations: int = 100
+    confidence: float = 0.999
+    min_inliers: int = 12
+    rotation_threshold_deg: float = 0.5
+    rotation_min_inliers: int = 15
+
+
+@dataclass
+class KeyframeConfig:
+    """Keyframe decision (OKVIS2: a new keyframe when the matched-area overlap drops below ~0.6).
+
+    Attributes:
+        overlap_threshold: new keyframe when the best overlap with a window keyframe is below this.
+        cell_px: grid cell of the keypoint-area measure.
+        min_interval_s, max_interval_s: keyframe spacing bounds (seconds of sensor time).
+        min_tracked: new keyframe (with new stereo landmarks) when fewer landmarks are tracked.
+    """
+
+    overlap_threshold: float = 0.6
+    cell_px: int = 16
+    min_interval_s: float = 0.04
+    max_interval_s: float = 0.5
+    min_tracked: int = 40
+
+
+@dataclass
+class BackendConfig:
+    """gtsam fixed-lag keyframe smoother and per-frame tracking optimisation.
+
+    Attributes:
+        window_keyframes: keyframes kept in the smoother (older ones are marginalised).
+        max_iterations: Levenberg-Marquardt iterations per keyframe update.
+        time_budget_ms: the iteration count is lowered so that an update fits this budget
+            (from the measured time per iteration).
+        tracking_iterations: LM iterations of the per-frame (motion-only) optimisation.
+        tracking_max_observations: observations it uses (spread over the image; all are checked).
+        pixel_sigma: reprojection noise (px, 1 sigma).
+        robust: ``huber`` or ``cauchy`` loss on reprojection errors; ``robust_k`` its threshold in sigmas.
+        prior_rollpitch_deg, prior_velocity_m_s: initial-state uncertainty after initialisation.
+        prior_acc_bias, prior_gyro_bias: initial bias uncertainty (m/s^2, rad/s).
+        max_landmarks: landmarks in the local map used for matching (the oldest are dropped first).
+    """
+
+    window_keyframes: int = 6
+    max_iterations: int = 6
+    time_budget_ms: float = 60.0
+    tracking_iterations: int = 4
+    tracking_max_observations: int = 120
+    pixel_sigma: float = 1.0
+    robust: str = "huber"
+    robust_k: float = 1.345
+    prior_rollpitch_deg: float = 2.0
+    prior_velocity_m_s: float = 0.1
+    prior_acc_bias: float = 0.1
+    prior_gyro_bias: float = 0.01
+    max_landmarks: int = 800
+
+
+@dataclass
+class InitConfig:
+    """Initialisation of gravity, velocity and biases (stereo gives the scale).
+
+    Attributes:
+        window_s: vision-only tracking this long before the visual-inertial alignment.
+        min_frames: tracked frames needed for the alignment.
+        timeout_s: without enough tracked frames by then, initialise from the accelerometer
+            alone (assumes a static start, with a warning).
+    """
+
+    window_s: float = 0.3
+    min_frames: int = 8
+    timeout_s: float = 1.5
+
+
+@dataclass
+class TrackingConfig:
+    """Failure handling.
+
+    Attributes:
+        loss_frames: consecutive visually untracked frames that count as a tracking loss.
+        loss_time_s: or this long without visual tracking.
+        max_imu_gap_ms: IMU gaps longer than this are reported (integration bridges them).
+    """
+
+    loss_frames: int = 10
+    loss_time_s: float = 0.5
+    max_imu_gap_ms: float = 20.0
+
+
+@dataclass
+class SlamConfig:
+    """All settings of one SLAM run.
+
+    Attributes:
+        name: setting name (``realtime``, ``accurate`` or the file stem).
+        mode: the mode this setting is meant for (``sync`` | ``async`` | ``live``); the caller may override.
+        rate_hz: sync-mode processing rate (and the live-mode rate of a sync setting).
+        max_rate_hz: async/live cap: the frontend waits instead of re-processing nearly the same state.
+        input, detector, matching, ransac, keyframes, backend, init, tracking: the sections above.
+    """
+
+    name: str = "default"
+    mode: str = "sync"
+    rate_hz: float = 50.0
+    max_rate_hz: float = 100.0
+    input: InputConfig = field(default_factory=InputConfig)
+    detector: DetectorConfig = field(default_factory=DetectorConfig)
+    matching: MatchingConfig = field(default_factory=MatchingConfig)
+    ransac: RansacConfig = field(default_factory=RansacConfig)
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    backend: BackendConfig = field(default_factory=BackendConfig)
+    init: InitConfig = field(default_factory=InitConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+
+    def to_dict(self) -> dict:
+        """Plain nested dict (for metrics.json and reproducibility)."""
+        return dataclasses.asdict(self)
+
+
+def _build(cls, data: Any, path, prefix: str):
+    """Instantiate dataclass ``cls`` from a mapping, recursing into nested dataclass fields."""
+    if not isinstance(data, dict):
+        raise DataError(path, f"{prefix or 'the file'} must be a mapping, got {type(data).__name__}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = [k for k in data if k not in fields]
+    if unknown:
+        where = f"{prefix}." if prefix else ""
+        raise DataError(path, f"unknown key(s) {[where + str(k) for k in unknown]}; known keys of "
+                              f"{prefix or 'the top level'}: {sorted(fields)}")
+    kwargs = {}
+    for k, v in data.items():
+        default = getattr(cls(), k)
+        key = f"{prefix}.{k}" if prefix else k
+        if dataclasses.is_dataclass(default):
+            kwargs[k] = _build(type(default), v, path, key)
+        else:
+            kwargs[k] = _coerce(v, default, path, key)
+    return cls(**kwargs)
+
+
+def _coerce(value: Any, default: Any, path, key: str):
+    """Check a scalar against the default's type (int/float/str; None allowed for optional fields)."""
+    if value is None:
+        return None
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise DataError(path, f"{key} must be true or false, got {value!r}")
+        return value
+    if isinstance(default, (int, float)) or default is None:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            if default is None and isinstance(value, str):
+                return value
+            raise DataError(path, f"{key} must be a number, got {value!r}")
+        return type(default)(value) if default is not None else value
+    if isinstance(default, str):
+        if not isinstance(value, str):
+            raise DataError(path, f"{key} must be a string, got {value!r}")
+        return value
+    return value
+
+
+def _validate(cfg: SlamConfig, path) -> None:
+    if cfg.mode not in MODES:
+        raise DataError(path, f"mode must be one of {MODES}, got {cfg.mode!r}")
+    if cfg.rate_hz <= 0 or cfg.max_rate_hz <= 0:
+        raise DataError(path, f"rate_hz and max_rate_hz must be positive (got {cfg.rate_hz}, {cfg.max_rate_hz})")
+    if cfg.backend.robust not in ("huber", "cauchy"):
+        raise DataError(path, f"backend.robust must be 'huber' or 'cauchy', got {cfg.backend.robust!r}")
+    if cfg.backend.window_keyframes < 2:
+        raise DataError(path, f"backend.window_keyframes must be at least 2, got {cfg.backend.window_keyframes}")
+    if cfg.input.max_width < 16 or cfg.input.max_height < 16:
+        raise DataError(path, f"input.max_width/max_height must be at least 16, got {cfg.input.max_width}x{cfg.input.max_height}")
+    from ..classical import DETECTORS
+
+    if cfg.detector.classical not in DETECTORS:
+        raise DataError(path, f"detector.classical must be one of {sorted(DETECTORS)}, got {cfg.detector.classical!r}")
+
+
+def config_path(name_or_path: str | os.PathLike) -> Path:
+    """Resolve a setting name (``realtime``) or a YAML path."""
+    p = Path(name_or_path)
+    if p.suffix in (".yaml", ".yml") or p.exists():
+        if not p.is_file():
+            raise DataError(p, "SLAM config file not found")
+        return p
+    cand = CONFIG_DIR / f"{name_or_path}.yaml"
+    if not cand.is_file():
+        known = sorted(q.stem for q in CONFIG_DIR.glob("*.yaml")) if CONFIG_DIR.is_dir() else []
+        raise DataError(cand, f"unknown SLAM config {str(name_or_path)!r}; shipped: {known}, or give a YAML file path")
+    return cand
+
+
+def load_config(name_or_path: str | os.PathLike = "realtime") -> SlamConfig:
+    """Load ``realtime`` | ``accurate`` (``conf/slam``) or a YAML file as a :class:`SlamConfig`.
+
+    Keys missing from the file keep the dataclass defaults; ``name`` defaults to the file stem.
+
+    Raises:
+        DataError: unreadable file, unknown key (named with its section), wrong type or bad value.
+    """
+    path = config_path(name_or_path)
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except (OSError, yaml.YAMLError) as exc:
+        raise DataError(path, f"not a readable YAML file ({exc})") from None
+    data = dict(data) if isinstance(data, dict) else data
+    if isinstance(data, dict):
+        data.setdefault("name", path.stem)
+    cfg = _build(SlamConfig, data, path, "")
+    _validate(cfg, path)
+    return cfg

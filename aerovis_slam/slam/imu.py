@@ -1,0 +1,262 @@
+"""IMU preintegration (gtsam) and visual-inertial initialisation.
+
+Frames and units: the body frame B is the IMU frame; the world frame W is gravity-aligned with z up
+(gravity ``(0, 0, -9.81)`` m/s², gtsam's ``MakeSharedU``); ``T_world_body`` maps body points into the
+world. The accelerometer measures specific force ``R_WB^T (a_W - g_W)`` (+9.81 up at rest), the
+gyroscope the body angular rate (rad/s); biases are added to both. Times are int64 µs.
+
+Noise: the rig's :class:`~aerovis_slam.calib.ImuNoise` holds continuous-time densities (Kalibr names),
+which are exactly what gtsam's covariances expect (``sigma^2`` per unit time; gtsam divides by ``dt``).
+
+Example (noise-free IMU of a constant-acceleration motion, integrated exactly):
+    >>> from aerovis_slam.measurements import ImuSamples
+    >>> t = np.arange(0, 200_001, 5_000)                      # 0.2 s at 200 Hz
+    >>> acc = np.tile([1.0, 0.0, 9.81], (len(t), 1))          # 1 m/s² forward, level
+    >>> stream = ImuStream(ImuSamples(t, np.zeros((len(t), 3)), acc))
+    >>> pim = new_preintegration(preintegration_params(None))
+    >>> stream.integrate(pim, 0, 200_000)
+    >>> round(float(pim.deltaPij()[0]), 6), round(pim.deltaTij(), 6)  # 0.5 * 1 * 0.2²
+    (0.02, 0.2)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from ..calib import ImuNoise
+from ..geometry import so3_exp
+from ..measurements import ImuSamples
+
+GRAVITY = 9.81
+
+
+def preintegration_params(noise: ImuNoise | None, gravity: float = GRAVITY,
+                          integration_sigma: float = 1e-4) -> gtsam.PreintegrationCombinedParams:
+    """gtsam combined-IMU parameters for z-up gravity from Kalibr-style noise densities.
+
+    Args:
+        noise: the rig's IMU noise (None: :class:`ImuNoise` defaults, a BMI160-like IMU).
+        integration_sigma: velocity-integration uncertainty (gtsam's ``integrationCovariance``),
+            small: it models the discretisation error of the preintegration itself.
+    """
+    noise = noise or ImuNoise()
+    p = gtsam.PreintegrationCombinedParams.MakeSharedU(gravity)
+    I3 = np.eye(3)
+    p.setAccelerometerCovariance(I3 * noise.accelerometer_noise_density ** 2)
+    p.setGyroscopeCovariance(I3 * noise.gyroscope_noise_density ** 2)
+    p.setBiasAccCovariance(I3 * noise.accelerometer_random_walk ** 2)
+    p.setBiasOmegaCovariance(I3 * noise.gyroscope_random_walk ** 2)
+    p.setIntegrationCovariance(I3 * integration_sigma ** 2)
+    return p
+
+
+def new_preintegration(params: gtsam.PreintegrationCombinedParams,
+                       bias: gtsam.imuBias.ConstantBias | None = None) -> gtsam.PreintegratedCombinedMeasurements:
+    """An empty preintegration with the given bias estimate (default zero)."""
+    return gtsam.PreintegratedCombinedMeasurements(params, bias if bias is not None else gtsam.imuBias.ConstantBias())
+
+
+class ImuStream:
+    """The IMU samples of a sequence with integration between arbitrary times.
+
+    Measurements are linearly interpolated between samples and each integration step uses the mean
+    of its two end values (the midpoint rule: second-order accurate, where holding the older sample
+    is first-order; it matters at 200 Hz during 700 deg/s shakes). Before the first and after the
+    last sample the nearest sample is held.
+
+    Args:
+        imu: all samples (sorted, strictly increasing ``t``).
+        max_gap_us: spacing above which :meth:`gaps` reports missing samples.
+    """
+
+    def __init__(self, imu: ImuSamples, max_gap_us: int = 20_000):
+        self.t = np.asarray(imu.t, np.int64)
+        self.gyro = np.asarray(imu.gyro, np.float64)
+        self.acc = np.asarray(imu.acc, np.float64)
+        self.max_gap_us = int(max_gap_us)
+        if len(self.t) == 0:
+            raise ValueError("ImuStream needs at least one sample")
+
+    @property
+    def t_first(self) -> int:
+        return int(self.t[0])
+
+    @property
+    def t_last(self) -> int:
+        return int(self.t[-1])
+
+    def covered_until(self, now_us: int) -> int:
+        """Newest sample time at or before ``now_us`` (what a live system has received by then)."""
+        i = int(np.searchsorted(self.t, now_us, side="right")) - 1
+        return int(self.t[max(i, 0)])
+
+    def sample(self, t_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Linearly interpolated (acc, gyro) at times (N,) µs, held constant outside the samples."""
+        tq = np.asarray(t_us, np.float64)
+        acc = np.stack([np.interp(tq, self.t, self.acc[:, k]) for k in range(3)], axis=-1)
+        gyro = np.stack([np.interp(tq, self.t, self.gyro[:, k]) for k in range(3)], axis=-1)
+        return acc, gyro
+
+    def integrate(self, pim: gtsam.PreintegratedCombinedMeasurements, t0_us: int, t1_us: int) -> None:
+        """Add the motion between ``t0_us`` and ``t1_us`` (µs, t1 >= t0) to ``pim``."""
+        if t1_us <= t0_us:
+            return
+        i0 = int(np.searchsorted(self.t, t0_us, side="right"))
+        i1 = int(np.searchsorted(self.t, t1_us, side="left"))
+        knots = np.concatenate([[t0_us], self.t[i0:i1], [t1_us]]).astype(np.int64)
+        acc, gyro = self.sample(knots)
+        acc_mid = 0.5 * (acc[1:] + acc[:-1])
+        gyro_mid = 0.5 * (gyro[1:] + gyro[:-1])
+        dts = np.diff(knots) * 1e-6
+        # gtsam rotates each step's acceleration with the attitude at the step's start; handing it the
+        # mid-step acceleration expressed in the start frame (rotated by half the step's rotation)
+        # makes the step second-order accurate: 12x less position error on a 700 deg/s shake at 200 Hz.
+        acc_in = np.einsum("nij,nj->ni", so3_exp(gyro_mid * (0.5 * dts)[:, None]), acc_mid)
+        for a, w, dt in zip(acc_in, gyro_mid, dts):
+            if dt > 0:
+                pim.integrateMeasurement(a, w, dt)
+
+    def gaps(self, t0_us: int, t1_us: int) -> list[tuple[int, int]]:
+        """Sample spacings longer than ``max_gap_us`` that overlap ``[t0_us, t1_us]``: (start, end) µs."""
+        i0 = max(int(np.searchsorted(self.t, t0_us, side="right")) - 1, 0)
+        i1 = min(int(np.searchsorted(self.t, t1_us, side="left")) + 1, len(self.t))
+        seg = self.t[i0:i1]
+        d = np.diff(seg)
+        bad = np.flatnonzero(d > self.max_gap_us)
+        return [(int(seg[k]), int(seg[k + 1])) for k in bad]
+
+    def mean_acc(self, t0_us: int, t1_us: int) -> np.ndarray:
+        """Mean accelerometer reading over ``[t0_us, t1_us]`` (nearest sample when none inside)."""
+        m = (self.t >= t0_us) & (self.t <= t1_us)
+        if not m.any():
+            return self.sample(np.array([t0_us]))[0][0]
+        return self.acc[m].mean(axis=0)
+
+
+def rotation_aligning(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation ``R`` with ``R a/|a| = b/|b|`` (3, 3)."""
+    a = np.asarray(a, np.float64) / np.linalg.norm(a)
+    b = np.asarray(b, np.float64) / np.linalg.norm(b)
+    v = np.cross(a, b)
+    c = float(np.dot(a, b))
+    if c < -1 + 1e-12:  # opposite: rotate by pi about any axis orthogonal to a
+        axis = np.cross(a, [1.0, 0, 0]) if abs(a[0]) < 0.9 else np.cross(a, [0, 1.0, 0])
+        axis /= np.linalg.norm(axis)
+        return 2 * np.outer(axis, axis) - np.eye(3)
+    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + vx + vx @ vx / (1 + c)
+
+
+def gravity_rotation_from_acc(acc_mean: np.ndarray) -> np.ndarray:
+    """``R_world_body`` with zero yaw whose up axis matches a resting accelerometer reading (3, 3).
+
+    At rest the accelerometer reads ``R_WB^T (0, 0, +g)``; the rotation taking that body vector to
+    world +z fixes roll and pitch (yaw is unobservable and set by the minimal rotation).
+    """
+    return rotation_aligning(acc_mean, np.array([0.0, 0.0, 1.0]))
+
+
+@dataclass
+class Alignment:
+    """Result of :func:`align_visual_inertial`.
+
+    Attributes:
+        R_world_vision: (3, 3) rotation from the vision frame V (first body pose) to the gravity-aligned world.
+        velocities: (N, 3) body velocities in the vision frame V (m/s), one per frame.
+        gyro_bias: (3,) rad/s.
+        gravity_norm: norm of the unconstrained gravity estimate (m/s²; ~9.81 when the motion fits).
+        residual_m: RMS position residual of the fit (m).
+    """
+
+    R_world_vision: np.ndarray
+    velocities: np.ndarray
+    gyro_bias: np.ndarray
+    gravity_norm: float
+    residual_m: float
+
+
+def _pair_preintegrations(stream: ImuStream, params, t_us, bias_gyro):
+    bias = gtsam.imuBias.ConstantBias(np.zeros(3), np.asarray(bias_gyro, np.float64))
+    pims = []
+    for a, b in zip(t_us[:-1], t_us[1:]):
+        pim = new_preintegration(params, bias)
+        stream.integrate(pim, int(a), int(b))
+        pims.append(pim)
+    return pims
+
+
+def align_visual_inertial(t_us: np.ndarray, T_vision_body: np.ndarray, stream: ImuStream,
+                          params: gtsam.PreintegrationCombinedParams, *, gravity: float = GRAVITY) -> Alignment:
+    """Gravity direction, velocities and gyroscope bias from metric visual poses and the IMU.
+
+    Stereo gives metric poses ``T_V_B(t_i)`` in the vision frame V, so (unlike monocular VINS) no
+    scale is estimated. Steps:
+
+    1. gyro bias: Gauss-Newton on ``sum |Log((R_i dR_ij(b_g))^T R_j)|^2`` (Jacobian by re-integration);
+    2. linear least squares for the velocities ``v_i`` and gravity ``g_V`` from, per consecutive pair,
+       ``p_j - p_i = v_i dt + g dt²/2 + R_i dp_ij`` and ``v_j = v_i + g dt + R_i dv_ij``;
+    3. ``g_V`` rescaled to ``gravity`` and the velocities re-solved with it fixed;
+    4. ``R_world_vision`` is the smallest rotation taking ``g_V`` to ``(0, 0, -gravity)``.
+
+    The accelerometer bias is left at zero (it is not separable from gravity over a short window).
+
+    Args:
+        t_us: (N,) frame times, N >= 3. T_vision_body: (N, 4, 4) poses.
+    Returns:
+        :class:`Alignment` (velocities in V; rotate them with ``R_world_vision``).
+    """
+    t_us = np.asarray(t_us, np.int64)
+    T = np.asarray(T_vision_body, np.float64)
+    n = len(t_us)
+    if n < 3:
+        raise ValueError(f"visual-inertial alignment needs at least 3 frames, got {n}")
+    R = T[:, :3, :3]
+    p = T[:, :3, 3]
+    # 1. gyroscope bias
+    bg = np.zeros(3)
+    for _ in range(2):
+        def residuals(b):
+            res = []
+            for k, pim in enumerate(_pair_preintegrations(stream, params, t_us, b)):
+                dR = pim.deltaRij().matrix()
+                res.append(gtsam.Rot3.Logmap(gtsam.Rot3((R[k] @ dR).T @ R[k + 1])))
+            return np.concatenate(res)
+
+        r0 = residuals(bg)
+        eps = 1e-4
+        J = np.stack([(residuals(bg + eps * e) - r0) / eps for e in np.eye(3)], axis=1)
+        step, *_ = np.linalg.lstsq(J, -r0, rcond=None)
+        bg = bg + step
+        if np.linalg.norm(step) < 1e-7:
+            break
+    pims = _pair_preintegrations(stream, params, t_us, bg)
+    # 2. velocities and gravity, unknowns [v_0 .. v_{n-1}, g]
+    m = n - 1
+    A = np.zeros((6 * m, 3 * n + 3))
+    y = np.zeros(6 * m)
+    for k, pim in enumerate(pims):
+        dt = pim.deltaTij()
+        I3 = np.eye(3)
+        r = slice(6 * k, 6 * k + 3)
+        A[r, 3 * k:3 * k + 3] = I3 * dt
+        A[r, 3 * n:] = 0.5 * I3 * dt * dt
+        y[r] = p[k + 1] - p[k] - R[k] @ pim.deltaPij()
+        r = slice(6 * k + 3, 6 * k + 6)
+        A[r, 3 * k:3 * k + 3] = -I3
+        A[r, 3 * (k + 1):3 * (k + 1) + 3] = I3
+        A[r, 3 * n:] = -I3 * dt
+        y[r] = R[k] @ pim.deltaVij()
+    x, *_ = np.linalg.lstsq(A, y, rcond=None)
+    g = x[3 * n:]
+    g_norm = float(np.linalg.norm(g))
+    # 3. fix |g| and re-solve the velocities
+    g = g / max(g_norm, 1e-9) * gravity
+    y2 = y - A[:, 3 * n:] @ g
+    v, *_ = np.linalg.lstsq(A[:, :3 * n], y2, rcond=None)
+    pos_rows = np.concatenate([np.arange(6 * k, 6 * k + 3) for k in range(m)])
+    resid = (A[:, :3 * n] @ v - y2)[pos_rows]
+    return Alignment(R_world_vision=rotation_aligning(g, np.array([0.0, 0.0, -1.0])), velocities=v.reshape(n, 3),
+                     gyro_bias=bg, gravity_norm=g_norm, residual_m=float(np.sqrt(np.mean(resid ** 2))))

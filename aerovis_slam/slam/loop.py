@@ -1,0 +1,733 @@
+"""Loop closure: place recognition, geometric verification and a background pose-graph optimisation.
+
+As in OKVIS2 (REFERENCE.md section 5; paper Fig. 1), in three steps:
+
+1. **Place recognition** over keyframe descriptors with VLAD (vectors of locally aggregated
+   descriptors): every descriptor is assigned to its nearest word of a small vocabulary (k-means
+   centres learnt from training data, :func:`train_vocabulary`), the residuals to the word are
+   summed per word, each word's block is L2-normalised (intra-normalisation) and so is the whole
+   vector; two keyframes' score is the dot product (cosine similarity, 1 = identical). VLAD rather
+   than a DBoW2 tree: with descriptors of 64 (learned) or 256 bits (ORB) and a few hundred
+   keyframes, 64 words and one matrix-vector product per query rank candidates well, with no
+   inverse-document-frequency table to learn or keep. Binary descriptors are unpacked to 0/1 bits,
+   where squared Euclidean distance equals Hamming distance, so the same k-means serves them.
+   Keyframes of the last ``skip_recent_s`` seconds / ``skip_recent_keyframes`` and those reached
+   after less than ``min_travel_m`` of travel are never candidates (they are not loops).
+2. **Verification** of the best candidates: descriptor matches between the candidate's keypoints
+   with triangulated landmarks and the new keyframe's keypoints, absolute pose by 3D-2D RANSAC
+   (``cv2.solvePnPRansac``) with at least ``min_inliers`` inliers (OKVIS2: 10), and a drift bound:
+   the correction the loop implies must be at most ``drift_fraction`` of the distance travelled
+   between the two keyframes (plus ``drift_min_m``) and ``max_rotation_drift_deg``, since real
+   odometry cannot have drifted more (OKVIS2 uses ~1.35 %; the default here is looser for the
+   shorter, rougher runs of this runtime).
+3. **Pose-graph optimisation** (gtsam): keyframe poses linked by relative-pose edges from the
+   odometry (``BetweenFactorPose3``, noise growing with the distance of the edge) and by the loop
+   edges (``BetweenFactorPose3`` with the first-order covariance of the PnP pose and a Huber robust
+   loss whose quadratic zone spans the drift bound), the first keyframe fixed by a prior, solved by
+   Levenberg-Marquardt (``LevenbergMarquardtOptimizer``) in a background thread. gtsam holds the
+   GIL while it computes, so the thread steps the optimiser one iteration at a time: the caller waits
+   at most one iteration (2-10 ms at 300-1000 keyframes on a 2-core box) instead of the whole
+   solve. The caller merges the result with :meth:`LoopCloser.poll`, which never blocks.
+
+The contract with the caller (the SLAM backend): it always passes its *odometry* poses (never
+corrected ones) to :meth:`add_keyframe` and :meth:`add_odometry`; the closer keeps the corrected
+poses. After :meth:`poll` returns, :attr:`LoopCloser.last_correction` maps the odometry frame to
+the corrected world (``T_corrected = last_correction @ T_odometry``, exact for the newest
+keyframe), which is how the runtime outputs loop-corrected poses without disturbing its smoother.
+
+Vocabularies ship in ``aerovis_slam/slam/data/vocabulary.npz`` (one (K, D) array per detector
+name); build them with ``aerovis-slam vocab`` (see :func:`build_vocabulary`). Without a matching
+vocabulary the closer learns one online from its first keyframes (and says so in
+:attr:`LoopCloser.warnings`).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import os
+import threading
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..errors import DataError
+from ..geometry import invert_T, rotation_angle_deg
+from ..keypoints import Keypoints, match_keypoints
+
+log = logging.getLogger(__name__)
+
+VOCABULARY_PATH = Path(__file__).with_name("data") / "vocabulary.npz"
+
+DEFAULT_CONFIG: dict = {
+    # place recognition
+    "skip_recent_keyframes": 10,  # never a candidate: the last N keyframes ...
+    "skip_recent_s": 2.0,  # ... and those of the last seconds
+    "min_travel_m": 0.3,  # travelled between candidate and query (less is no loop)
+    "min_score": 0.2,  # VLAD cosine similarity to consider a candidate
+    "max_candidates": 3,  # verified per keyframe, best score first
+    "cooldown_keyframes": 5,  # after a closure, keyframes without loop search (same place again)
+    "online_vocabulary_keyframes": 5,  # without a vocabulary: learn one from the first N keyframes
+    "words": 64,  # vocabulary size when learnt online
+    # verification
+    "min_inliers": 10,  # OKVIS2's
+    "min_inlier_ratio": 0.25,
+    "ransac_px": 3.0,
+    "ransac_iterations": 300,
+    "drift_fraction": 0.05,
+    "drift_min_m": 0.05,
+    "max_rotation_drift_deg": 15.0,
+    # pose graph
+    "odometry_sigma_rot_rad": 0.002,
+    "odometry_sigma_rot_per_m": 0.01,  # rad per metre of the edge
+    "odometry_sigma_trans_m": 0.005,
+    "odometry_sigma_trans_per_m": 0.02,  # m per metre of the edge
+    "loop_sigma_rot_rad": 0.002,  # floors added to the PnP covariance of a loop edge
+    "loop_sigma_trans_m": 0.005,
+    "loop_huber_k": 1.345,
+    "max_iterations": 50,
+    "relative_error_tol": 1e-6,
+    "time_budget_s": 5.0,
+}
+
+
+# -- descriptors and vocabularies -----------------------------------------------------------------
+def descriptor_vectors(descriptors: np.ndarray) -> np.ndarray:
+    """Descriptors as float32 vectors for k-means and VLAD: (N, D) -> (N, D').
+
+    uint8 bit strings (ORB, (N, 32)) unpack to (N, 256) bits in {0, 1} (squared L2 = Hamming);
+    int8 and float descriptors become L2-normalised float32 (cosine similarity = dot product).
+    """
+    d = np.asarray(descriptors)
+    if d.dtype == np.uint8:
+        return np.unpackbits(d, axis=1).astype(np.float32)
+    v = d.astype(np.float32)
+    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+
+
+def train_vocabulary(vectors: np.ndarray, words: int = 64, *, seed: int = 0, attempts: int = 3,
+                     max_iterations: int = 50) -> np.ndarray:
+    """k-means (``cv2.kmeans``, k-means++ seeding) over descriptor vectors: (N, D') -> (words, D') float32."""
+    x = np.ascontiguousarray(vectors, np.float32)
+    if len(x) < words:
+        raise DataError(None, f"{len(x)} descriptors are too few for a vocabulary of {words} words")
+    cv2.setRNGSeed(int(seed))
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, int(max_iterations), 1e-4)
+    _, _, centres = cv2.kmeans(x, int(words), None, criteria, int(attempts), cv2.KMEANS_PP_CENTERS)
+    return centres.astype(np.float32)
+
+
+def vlad(vectors: np.ndarray, vocabulary: np.ndarray) -> np.ndarray:
+    """VLAD of one image: (N, D') descriptor vectors, (K, D') words -> (K * D',) unit float32.
+
+    Residuals to the nearest word are summed per word, each word's block is L2-normalised
+    (intra-normalisation: bursts of similar descriptors do not dominate) and then the whole vector.
+    An image without descriptors gives the zero vector (it matches nothing).
+    """
+    K, D = vocabulary.shape
+    out = np.zeros((K, D), np.float32)
+    if len(vectors):
+        # nearest word by |x - c|^2 = |x|^2 - 2 x.c + |c|^2 (|x|^2 is the same for every word)
+        dist = (vocabulary * vocabulary).sum(1)[None, :] - 2.0 * vectors @ vocabulary.T
+        word = dist.argmin(1)
+        np.add.at(out, word, vectors - vocabulary[word])
+        out /= np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-12)
+    flat = out.reshape(-1)
+    n = np.linalg.norm(flat)
+    return flat / n if n > 0 else flat
+
+
+def load_vocabularies(path: str | os.PathLike | None = None) -> dict[str, np.ndarray]:
+    """All vocabularies of a file (default: the shipped one): ``{name: (K, D') float32}``."""
+    path = Path(path) if path is not None else VOCABULARY_PATH
+    if not path.is_file():
+        return {}
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k].astype(np.float32) for k in z.files if k != "meta"}
+    except (OSError, ValueError) as exc:
+        raise DataError(path, f"not a vocabulary file (numpy .npz of (K, D) arrays) ({exc})") from None
+
+
+def vocabulary_meta(path: str | os.PathLike | None = None) -> dict:
+    """The provenance record stored with the vocabularies (``{name: {...}}``)."""
+    path = Path(path) if path is not None else VOCABULARY_PATH
+    if not path.is_file():
+        return {}
+    with np.load(path, allow_pickle=False) as z:
+        return json.loads(str(z["meta"])) if "meta" in z.files else {}
+
+
+def vocabulary_for(name: str, path: str | os.PathLike | None = None) -> np.ndarray | None:
+    """The vocabulary for a detector name: exact key, else the key before the precision suffix
+    (``superlite`` serves ``superlite-fp32`` and ``superlite-int8-cpu``, not ``superlite_v2``); None if none."""
+    vocabs = load_vocabularies(path)
+    if name in vocabs:
+        return vocabs[name]
+    keys = sorted((k for k in vocabs if name.startswith(k + "-")), key=len)
+    return vocabs[keys[-1]] if keys else None
+
+
+def save_vocabulary(path: str | os.PathLike, name: str, vocabulary: np.ndarray, meta: dict | None = None) -> Path:
+    """Add or replace vocabulary ``name`` in an .npz file (float16 on disk; atomic rewrite)."""
+    path = Path(path)
+    vocabs = load_vocabularies(path) if path.is_file() else {}
+    metas = vocabulary_meta(path) if path.is_file() else {}
+    vocabs[name] = np.asarray(vocabulary, np.float32)
+    metas[name] = dict(meta or {}, words=int(vocabulary.shape[0]), dim=int(vocabulary.shape[1]))
+    buf = io.BytesIO()
+    # float16 halves the file; k-means centres need no more precision than that
+    np.savez_compressed(buf, meta=np.array(json.dumps(metas, sort_keys=True)), **{k: v.astype(np.float16) for k, v in vocabs.items()})
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.partial")
+    tmp.write_bytes(buf.getvalue())
+    os.replace(tmp, path)
+    return path
+
+
+def build_vocabulary(sequences: Iterable[str | os.PathLike], detector, *, frames_per_sequence: int = 8,
+                     cameras: tuple[str, ...] = ("cam0", "cam1"), max_descriptors: int = 60_000, words: int = 64,
+                     seed: int = 0, progress: bool = True) -> tuple[np.ndarray, dict]:
+    """Learn a vocabulary from the detector's descriptors on training sequences.
+
+    MCTS (the detector's kind and parameters) at ``frames_per_sequence`` evenly spaced times after
+    the first 10 % of each sequence, for each camera; keypoints by ``detector(mcts)``; descriptors
+    subsampled to ``max_descriptors`` (seeded), then :func:`train_vocabulary`. ``detector`` is a
+    runtime detector (``detect((1, C, H, W)) -> [Keypoints]``) or any ``detector(mcts) -> Keypoints``.
+
+    Returns:
+        (vocabulary (words, D'), provenance dict).
+    """
+    from tqdm import tqdm
+
+    from ..io.sequence import Sequence
+    from ..mcts import MCTS_DT_WINDOWS_MS, MCTS_NE_EVENTS_PER_PX, TimestampBuffer
+
+    kind = getattr(detector, "mcts_kind", "ne")
+    params = tuple(getattr(detector, "mcts_params", ())) or None
+    multiple = int(getattr(detector, "size_multiple", 8))
+    chunks, names = [], []
+    seqs = [Path(s) for s in sequences]
+    for path in tqdm(seqs, desc="vocabulary", unit="seq", disable=not progress):
+        with Sequence(path) as seq:
+            names.append(path.stem)
+            for cam in [c for c in cameras if c in seq.cameras]:
+                tr = seq.time_range(cam)
+                if tr is None:
+                    continue
+                w, h = seq.sensor_size(cam)
+                if kind == "ne":
+                    buf = TimestampBuffer(w, h, events_per_px=params or MCTS_NE_EVENTS_PER_PX)
+                else:
+                    buf = TimestampBuffer(w, h, events_per_px=(1e-9,))
+                    window_us = int(max(params or MCTS_DT_WINDOWS_MS) * 1000)
+                t0, t1 = tr
+                taus = np.linspace(t0 + 0.1 * (t1 - t0), t1, frames_per_sequence).astype(np.int64)
+                for tau in taus:
+                    # only the events a surface can see: the last N_max + 1 (MCTS_Ne) or the longest window (MCTS_dt)
+                    i1 = seq.index_at(cam, int(tau) + 1)
+                    i0 = max(0, i1 - buf.ring_capacity) if kind == "ne" else seq.index_at(cam, int(tau) - window_us)
+                    buf.reset()
+                    buf.ingest(seq.events_by_index(cam, i0, i1))
+                    mcts = buf.mcts_ne(int(tau), params or MCTS_NE_EVENTS_PER_PX) if kind == "ne" else buf.mcts_dt(int(tau), params or MCTS_DT_WINDOWS_MS)
+                    mcts = mcts[:, : h - h % multiple, : w - w % multiple]
+                    mcts = np.ascontiguousarray(mcts)
+                    # the runtime's stereo contract (detect on a batch) or the evaluation's (one MCTS)
+                    kp = detector.detect(mcts[None])[0] if hasattr(detector, "detect") else detector(mcts)
+                    if len(kp):
+                        chunks.append(descriptor_vectors(kp.descriptors))
+    if not chunks:
+        raise DataError(None, "no keypoints found on the training sequences")
+    vectors = np.concatenate(chunks)
+    rng = np.random.default_rng(seed)
+    if len(vectors) > max_descriptors:
+        vectors = vectors[rng.choice(len(vectors), max_descriptors, replace=False)]
+    vocab = train_vocabulary(vectors, words, seed=seed)
+    meta = {"detector": getattr(detector, "name", "?"), "sequences": len(names), "descriptors": int(len(vectors)),
+            "frames_per_sequence": frames_per_sequence, "mcts": [kind, list(params or ())], "seed": seed}
+    return vocab, meta
+
+
+# -- the loop closer -----------------------------------------------------------------------------
+@dataclass
+class _Keyframe:
+    kf_id: int
+    t_us: int
+    T_odom: np.ndarray  # (4, 4) the caller's odometry pose (never corrected)
+    T_world_body: np.ndarray  # (4, 4) current best estimate (loop-corrected)
+    keypoints: Keypoints
+    points_body: np.ndarray  # (N, 3)
+    point_valid: np.ndarray  # (N,) bool
+    K: np.ndarray
+    T_body_cam: np.ndarray
+    travelled_m: float  # path length from the first keyframe along the keyframe chain
+    vlad: np.ndarray | None = None
+
+
+@dataclass
+class LoopClosure:
+    """A verified loop: keyframe ``query`` sees the place of keyframe ``match``.
+
+    ``T_match_query`` (4, 4) is the measured pose of the query body in the match body frame;
+    ``drift_m`` / ``drift_deg`` the correction it implies for the odometry.
+    """
+
+    query: int
+    match: int
+    score: float
+    inliers: int
+    T_match_query: np.ndarray
+    drift_m: float
+    drift_deg: float
+    travelled_m: float
+    covariance: np.ndarray  # (6, 6) of T_match_query in gtsam's Pose3 tangent (rotation, translation)
+    t_us: int = 0  # time of the query keyframe
+
+    def to_dict(self) -> dict:
+        return {"query": self.query, "match": self.match, "t_s": self.t_us / 1e6, "score": round(self.score, 4), "inliers": self.inliers,
+                "drift_m": round(self.drift_m, 4), "drift_deg": round(self.drift_deg, 3), "travelled_m": round(self.travelled_m, 3)}
+
+
+@dataclass
+class _Snapshot:
+    ids: list[int]
+    poses: list[np.ndarray]
+    # (from, to, T_from_to, None for odometry / (drift bound m, covariance) for a loop)
+    edges: list[tuple[int, int, np.ndarray, tuple[float, np.ndarray] | None]]
+
+
+@dataclass
+class _Result:
+    poses: dict[int, np.ndarray]
+    iterations: int
+    error_before: float
+    error_after: float
+    seconds: float
+
+
+class LoopCloser:
+    """Place recognition, verification and background pose-graph optimisation over keyframes.
+
+    Args:
+        config: overrides of :data:`DEFAULT_CONFIG`.
+        vocabulary: (K, D') VLAD words for this detector's descriptors (:func:`vocabulary_for`);
+            None (or a dimension that does not fit the descriptors) learns one online.
+
+    Attributes:
+        n_closures: verified loops so far.
+        closures: their :class:`LoopClosure` records.
+        last_correction: (4, 4) ``T_world_odometry`` of the newest keyframe after the last merged
+            optimisation (identity before any): left-multiply odometry poses to correct them.
+        timings: ``{"loop_detection": [ms per keyframe], "pose_graph": [ms per optimisation]}``.
+        stats: counters of candidates and of rejections by reason.
+        warnings: human-readable notes (online vocabulary, failed optimisation).
+    """
+
+    def __init__(self, config: dict | None = None, vocabulary: np.ndarray | None = None):
+        unknown = sorted(set(config or {}) - set(DEFAULT_CONFIG))
+        if unknown:
+            raise ValueError(f"unknown loop-closure option(s) {unknown}; known: {sorted(DEFAULT_CONFIG)}")
+        self.config = dict(DEFAULT_CONFIG, **(config or {}))
+        self.vocabulary = None if vocabulary is None else np.asarray(vocabulary, np.float32)
+        self._keyframes: dict[int, _Keyframe] = {}
+        self._order: list[int] = []
+        self._odometry: dict[tuple[int, int], np.ndarray] = {}
+        self._loops: list[LoopClosure] = []
+        self._db_store = np.zeros((0, 0), np.float32)  # VLAD rows of indexed keyframes (capacity)
+        self._db = self._db_store  # the filled rows, in the order of self._db_ids
+        self._db_ids: list[int] = []
+        self._cooldown = 0
+        self.n_closures = 0
+        self.closures = self._loops
+        self.last_correction = np.eye(4)
+        self.timings: dict[str, list[float]] = {"loop_detection": [], "pose_graph": []}
+        self.stats = {"candidates": 0, "rejected_matches": 0, "rejected_inliers": 0, "rejected_drift": 0, "optimisations": 0}
+        self.warnings: list[str] = []
+        # background optimisation
+        self._lock = threading.Lock()
+        self._wake = threading.Condition(self._lock)
+        self._pending: _Snapshot | None = None
+        self._result: _Result | None = None
+        self._busy = False
+        self._stop = False
+        self._thread: threading.Thread | None = None
+        self._closed = False
+
+    # -- input ---------------------------------------------------------------------------------
+    def add_keyframe(self, kf_id: int, t_us: int, T_world_body: np.ndarray, keypoints: Keypoints,
+                     points_body: np.ndarray, point_valid: np.ndarray, K: np.ndarray, T_body_cam: np.ndarray) -> None:
+        """Add a keyframe and search it for a loop (synchronous, a few ms); a verified loop starts
+        a background pose-graph optimisation.
+
+        Args:
+            kf_id: unique, increasing keyframe id.
+            t_us: keyframe time (µs).
+            T_world_body: (4, 4) the keyframe's odometry pose (the caller's estimate without loop
+                corrections; the closer corrects it with :attr:`last_correction`).
+            keypoints: left-camera keypoints (float, int8 or uint8 binary descriptors).
+            points_body: (N, 3) landmarks of those keypoints in the body frame (m), valid where
+                ``point_valid`` (N,) is True.
+            K: (3, 3) left camera matrix of the keypoints' pixel coordinates (undistorted).
+            T_body_cam: (4, 4) left camera extrinsic (camera to body).
+        """
+        if self._closed:
+            raise RuntimeError("LoopCloser is closed")
+        if kf_id in self._keyframes:
+            raise ValueError(f"keyframe id {kf_id} added twice")
+        t_start = time.perf_counter()
+        T = np.asarray(T_world_body, np.float64)
+        pts = np.asarray(points_body, np.float64).reshape(-1, 3)
+        valid = np.asarray(point_valid, bool).reshape(-1)
+        if len(pts) != len(keypoints) or len(valid) != len(keypoints):
+            raise ValueError(f"keyframe {kf_id}: {len(keypoints)} keypoints but {len(pts)} points and {len(valid)} flags")
+        travelled = 0.0
+        if self._order:
+            prev = self._keyframes[self._order[-1]]
+            travelled = prev.travelled_m + float(np.linalg.norm(T[:3, 3] - prev.T_odom[:3, 3]))
+            # the odometry edge as the caller's estimates stand now (add_odometry may refine it)
+            self._odometry.setdefault((prev.kf_id, kf_id), invert_T(prev.T_odom) @ T)
+        kf = _Keyframe(int(kf_id), int(t_us), T.copy(), self.last_correction @ T, keypoints, pts, valid & np.isfinite(pts).all(1),
+                       np.asarray(K, np.float64), np.asarray(T_body_cam, np.float64), travelled)
+        self._keyframes[kf.kf_id] = kf
+        self._order.append(kf.kf_id)
+        self._index(kf)
+        if kf.vlad is not None:
+            self._detect(kf)
+        self.timings["loop_detection"].append((time.perf_counter() - t_start) * 1e3)
+
+    def add_odometry(self, kf_from: int, kf_to: int, T_from_to: np.ndarray) -> None:
+        """Relative motion between two keyframes (``T_from_to`` maps ``to`` body points into ``from``)."""
+        self._odometry[(int(kf_from), int(kf_to))] = np.asarray(T_from_to, np.float64).copy()
+
+    # -- output --------------------------------------------------------------------------------
+    def poll(self) -> dict[int, np.ndarray] | None:
+        """Non-blocking: corrected ``T_world_body`` (4, 4) of every keyframe after a finished
+        optimisation (keyframes added since it started are moved by the newest optimised
+        keyframe's correction), else None. Updates :attr:`last_correction`."""
+        with self._lock:
+            res, self._result = self._result, None
+        if res is None:
+            return None
+        optimised = [i for i in self._order if i in res.poses]
+        last = optimised[-1]
+        correction = res.poses[last] @ invert_T(self._keyframes[last].T_odom)  # world <- odometry at `last`
+        out = {}
+        for i in self._order:
+            kf = self._keyframes[i]
+            kf.T_world_body = res.poses[i].copy() if i in res.poses else correction @ kf.T_odom
+            out[i] = kf.T_world_body.copy()
+        newest = self._keyframes[self._order[-1]]
+        self.last_correction = newest.T_world_body @ invert_T(newest.T_odom)
+        return out
+
+    def wait_idle(self, timeout: float | None = None) -> bool:
+        """Block until no optimisation is queued or running (e.g. at the end of a run); True if idle."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._lock:
+            while self._busy or self._pending is not None:
+                remaining = None if deadline is None else deadline - time.monotonic()
+                if remaining is not None and remaining <= 0:
+                    return False
+                self._wake.wait(remaining if remaining is not None else 0.1)
+        return True
+
+    def close(self) -> None:
+        """Stop the background thread (an optimisation in progress stops after its current iteration). Idempotent."""
+        with self._lock:
+            self._closed = True
+            self._stop = True
+            self._pending = None
+            self._wake.notify_all()
+            thread = self._thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout=10.0)
+            if thread.is_alive():
+                self.warnings.append("loop closure: the pose-graph thread did not stop within 10 s")
+
+    def __enter__(self) -> "LoopCloser":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self) -> None:  # a forgotten close() must not leave a thread waiting forever
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    def summary(self) -> dict:
+        """JSON-ready summary: closures, their records, counters, timings."""
+        det = np.asarray(self.timings["loop_detection"])
+        pg = np.asarray(self.timings["pose_graph"])
+        return {"loop_closures": self.n_closures, "keyframes": len(self._order), "closures": [c.to_dict() for c in self._loops],
+                **self.stats,
+                "loop_detection_ms_mean": float(det.mean()) if len(det) else None,
+                "pose_graph_ms_mean": float(pg.mean()) if len(pg) else None}
+
+    # -- place recognition -------------------------------------------------------------------------
+    def _index(self, kf: _Keyframe) -> None:
+        """Compute the keyframe's VLAD (learning the online vocabulary first if needed)."""
+        vec = descriptor_vectors(kf.keypoints.descriptors) if len(kf.keypoints) else None
+        dim = None if vec is None else vec.shape[1]
+        if self.vocabulary is not None and dim is not None and self.vocabulary.shape[1] != dim:
+            self.warnings.append(f"loop closure: vocabulary has {self.vocabulary.shape[1]}-D words but descriptors are "
+                                 f"{dim}-D; learning a vocabulary online instead")
+            self.vocabulary = None
+        if self.vocabulary is None:
+            waiting = [self._keyframes[i] for i in self._order if self._keyframes[i].vlad is None and len(self._keyframes[i].keypoints)]
+            if len(waiting) < self.config["online_vocabulary_keyframes"]:
+                return
+            vectors = np.concatenate([descriptor_vectors(k.keypoints.descriptors) for k in waiting])
+            words = min(int(self.config["words"]), max(2, len(vectors) // 8))
+            self.vocabulary = train_vocabulary(vectors, words)
+            self.warnings.append(f"loop closure: no vocabulary for these descriptors; learnt {words} words online "
+                                 f"from the first {len(waiting)} keyframes")
+            for k in waiting:
+                self._add_to_db(k, vlad(descriptor_vectors(k.keypoints.descriptors), self.vocabulary))
+            return
+        self._add_to_db(kf, vlad(vec if vec is not None else np.zeros((0, self.vocabulary.shape[1]), np.float32), self.vocabulary))
+
+    def _add_to_db(self, kf: _Keyframe, v: np.ndarray) -> None:
+        kf.vlad = v
+        n = len(self._db_ids)
+        if n == len(self._db_store):  # grow by doubling: appending stays O(1) amortised
+            grown = np.zeros((max(64, 2 * n), len(v)), np.float32)
+            if n:
+                grown[:n] = self._db_store[:n]
+            self._db_store = grown
+        self._db_store[n] = v
+        self._db_ids.append(kf.kf_id)
+        self._db = self._db_store[: n + 1]
+
+    def candidates(self, kf: _Keyframe) -> list[tuple[int, float]]:
+        """(keyframe id, score) of loop candidates for ``kf``, best first (eligibility rules applied)."""
+        c = self.config
+        if len(self._db_ids) < 2:
+            return []
+        scores = self._db @ kf.vlad
+        recent = set(self._order[-int(c["skip_recent_keyframes"]) - 1:])
+        out = []
+        for row in np.argsort(-scores):
+            s = float(scores[row])
+            if s < c["min_score"]:
+                break
+            cand = self._keyframes[self._db_ids[row]]
+            if (cand.kf_id in recent or kf.t_us - cand.t_us < c["skip_recent_s"] * 1e6
+                    or kf.travelled_m - cand.travelled_m < c["min_travel_m"]):
+                continue
+            out.append((cand.kf_id, s))
+            if len(out) >= c["max_candidates"]:
+                break
+        return out
+
+    def _detect(self, kf: _Keyframe) -> None:
+        if self._cooldown > 0:
+            self._cooldown -= 1
+            return
+        for cand_id, score in self.candidates(kf):
+            self.stats["candidates"] += 1
+            loop = self.verify(kf, self._keyframes[cand_id], score)
+            if loop is not None:
+                self._loops.append(loop)
+                self.n_closures += 1
+                self._cooldown = int(self.config["cooldown_keyframes"])
+                log.info("loop closure: keyframe %d -> %d (%d inliers, drift %.3f m)", loop.query, loop.match, loop.inliers, loop.drift_m)
+                self._submit()
+                return
+
+    # -- verification ----------------------------------------------------------------------------
+    def verify(self, query: _Keyframe, match: _Keyframe, score: float = float("nan")) -> LoopClosure | None:
+        """3D-2D RANSAC of the match's landmarks against the query's keypoints, then the drift bound."""
+        c = self.config
+        pairs = match_keypoints(query.keypoints, match.keypoints)
+        if len(pairs):
+            pairs = pairs[match.point_valid[pairs[:, 1]]]
+        if len(pairs) < c["min_inliers"]:
+            self.stats["rejected_matches"] += 1
+            return None
+        obj = np.ascontiguousarray(match.points_body[pairs[:, 1]], np.float64)
+        img = np.ascontiguousarray(query.keypoints.xy[pairs[:, 0]], np.float64)
+        try:
+            ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+                obj, img, query.K, None, iterationsCount=int(c["ransac_iterations"]), reprojectionError=float(c["ransac_px"]),
+                # AP3P: a 4-point minimal solver, ~4x faster per RANSAC iteration than EPnP here
+                confidence=0.999, flags=cv2.SOLVEPNP_AP3P)
+        except cv2.error:
+            ok, inliers = False, None
+        n_in = 0 if inliers is None else len(inliers)
+        if not ok or n_in < c["min_inliers"] or n_in < c["min_inlier_ratio"] * len(pairs):
+            self.stats["rejected_inliers"] += 1
+            return None
+        idx = inliers.reshape(-1)
+        # refine on the inliers (minimal solutions are noisy)
+        rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], query.K, None, rvec, tvec)
+        T_match_query = self._pnp_to_relative(np.concatenate([rvec.ravel(), tvec.ravel()]), query.T_body_cam)
+        cov = self._pnp_covariance(obj[idx], img[idx], query.K, rvec, tvec, query.T_body_cam, T_match_query)
+        if cov is None:
+            self.stats["rejected_inliers"] += 1
+            return None
+        T_est = invert_T(match.T_world_body) @ query.T_world_body
+        corr = invert_T(T_est) @ T_match_query
+        drift_m = float(np.linalg.norm(corr[:3, 3]))
+        drift_deg = float(rotation_angle_deg(corr[:3, :3]))
+        travelled = query.travelled_m - match.travelled_m
+        if drift_m > self._drift_bound(travelled) or drift_deg > c["max_rotation_drift_deg"]:
+            self.stats["rejected_drift"] += 1
+            return None
+        return LoopClosure(query.kf_id, match.kf_id, score, n_in, T_match_query, drift_m, drift_deg, travelled, cov, query.t_us)
+
+    @staticmethod
+    def _pnp_to_relative(params: np.ndarray, T_body_cam: np.ndarray) -> np.ndarray:
+        """PnP's (rvec, tvec) of ``T_cam_matchbody`` -> ``T_match_query`` (the query body in the match body frame)."""
+        T_cam_match = np.eye(4)
+        T_cam_match[:3, :3] = cv2.Rodrigues(np.asarray(params[:3], np.float64))[0]
+        T_cam_match[:3, 3] = params[3:]
+        return invert_T(T_body_cam @ T_cam_match)
+
+    def _pnp_covariance(self, obj, img, K, rvec, tvec, T_body_cam, T_match_query) -> np.ndarray | None:
+        """(6, 6) covariance of ``T_match_query`` in gtsam's Pose3 tangent (rotation, translation).
+
+        First order: the reprojection Jacobian of PnP's (rvec, tvec) at the solution with the
+        inliers' RMS residual as pixel noise gives the parameters' covariance; a numerical
+        Jacobian carries it to the relative pose's tangent space. A loop seen by a small cluster of
+        points is then weak exactly in the rotation/translation direction it cannot separate,
+        instead of pulling the whole graph with a made-up confidence. Floors
+        (``loop_sigma_*``) stand for what the pixels do not show (landmark errors, calibration).
+        None when the geometry is degenerate.
+        """
+        import gtsam
+
+        c = self.config
+        proj, jac = cv2.projectPoints(obj, rvec, tvec, K, None)
+        resid = proj.reshape(-1, 2) - img
+        sigma_px = max(float(np.sqrt(np.mean(resid**2))), 0.3)
+        J = jac[:, :6]
+        JtJ = J.T @ J
+        if np.linalg.cond(JtJ) > 1e12:
+            return None
+        cov_p = sigma_px**2 * np.linalg.inv(JtJ)
+        p0 = np.concatenate([rvec.ravel(), tvec.ravel()])
+        base = gtsam.Pose3(T_match_query)
+        A = np.zeros((6, 6))
+        h = 1e-6
+        for k in range(6):
+            p = p0.copy()
+            p[k] += h
+            A[:, k] = gtsam.Pose3.Logmap(base.between(gtsam.Pose3(self._pnp_to_relative(p, T_body_cam)))) / h
+        floor = np.array([c["loop_sigma_rot_rad"]] * 3 + [c["loop_sigma_trans_m"]] * 3) ** 2
+        cov = A @ cov_p @ A.T + np.diag(floor)
+        return 0.5 * (cov + cov.T)
+
+    def _drift_bound(self, travelled_m: float) -> float:
+        """Largest translation correction (m) a loop may imply after ``travelled_m`` of odometry."""
+        return self.config["drift_fraction"] * travelled_m + self.config["drift_min_m"]
+
+    # -- pose graph --------------------------------------------------------------------------------
+    def _submit(self) -> None:
+        snap = _Snapshot(
+            ids=list(self._order),
+            poses=[self._keyframes[i].T_world_body.copy() for i in self._order],
+            edges=[(a, b, T.copy(), None) for (a, b), T in self._odometry.items()]
+            + [(lc.match, lc.query, lc.T_match_query.copy(), (self._drift_bound(lc.travelled_m), lc.covariance))
+               for lc in self._loops])
+        with self._lock:
+            if self._stop:
+                return
+            self._pending = snap  # a newer snapshot supersedes one not yet started: it holds every loop
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._worker, name="aerovis-pose-graph", daemon=True)
+                self._thread.start()
+            self._wake.notify_all()
+
+    def _worker(self) -> None:
+        while True:
+            with self._lock:
+                while self._pending is None and not self._stop:
+                    self._wake.wait()
+                if self._stop:
+                    self._busy = False
+                    self._wake.notify_all()
+                    return
+                snap, self._pending = self._pending, None
+                self._busy = True
+            try:
+                res = self._optimise(snap)
+            except Exception as exc:  # a failed optimisation must not kill the run: keep the odometry
+                res = None
+                self.warnings.append(f"loop closure: pose-graph optimisation failed ({type(exc).__name__}: {exc})")
+            with self._lock:
+                if res is not None and not self._stop:
+                    self._result = res
+                    self.stats["optimisations"] += 1
+                    self.timings["pose_graph"].append(res.seconds * 1e3)
+                self._busy = False
+                self._wake.notify_all()
+
+    def _edge_noise(self, T: np.ndarray):
+        import gtsam
+
+        c = self.config
+        dist = float(np.linalg.norm(T[:3, 3]))
+        sr = c["odometry_sigma_rot_rad"] + c["odometry_sigma_rot_per_m"] * dist
+        st = c["odometry_sigma_trans_m"] + c["odometry_sigma_trans_per_m"] * dist
+        return gtsam.noiseModel.Diagonal.Sigmas(np.array([sr, sr, sr, st, st, st]))  # gtsam Pose3 tangent: rotation first
+
+    def _loop_noise(self, bound_m: float, covariance: np.ndarray):
+        """Huber-robust loop-edge noise (the PnP covariance) whose quadratic zone spans the drift
+        that verification allowed.
+
+        The residual of a correct loop edge at the start is the odometry drift, many loop sigmas
+        large; a Huber threshold of ~1.3 sigma would cap the loop's pull and leave most of the drift
+        uncorrected. Up to the drift bound the edge is trusted fully; beyond it (an edge that
+        disagrees with the others by more than any verified loop could) its influence is capped.
+        """
+        import gtsam
+
+        c = self.config
+        sr = float(np.sqrt(np.linalg.eigvalsh(covariance[:3, :3]).max()))
+        st = float(np.sqrt(np.linalg.eigvalsh(covariance[3:, 3:]).max()))
+        k = max(c["loop_huber_k"], bound_m / st, np.radians(c["max_rotation_drift_deg"]) / sr)
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(float(k)),
+                                              gtsam.noiseModel.Gaussian.Covariance(covariance))
+
+    def _optimise(self, snap: _Snapshot) -> _Result | None:
+        import gtsam
+
+        c = self.config
+        t0 = time.perf_counter()
+        ids = set(snap.ids)
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        for i, T in zip(snap.ids, snap.poses):
+            values.insert(i, gtsam.Pose3(T))
+        graph.add(gtsam.PriorFactorPose3(snap.ids[0], gtsam.Pose3(snap.poses[0]), gtsam.noiseModel.Constrained.All(6)))
+        for a, b, T, loop in snap.edges:
+            if a in ids and b in ids:
+                noise = self._edge_noise(T) if loop is None else self._loop_noise(*loop)
+                graph.add(gtsam.BetweenFactorPose3(a, b, gtsam.Pose3(T), noise))
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(int(c["max_iterations"]))
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        err0 = err = opt.error()
+        it = 0
+        # One iteration per call: gtsam keeps the GIL while it computes, so stepping bounds how
+        # long the caller's thread can wait for it.
+        while it < c["max_iterations"] and not self._stop and time.perf_counter() - t0 < c["time_budget_s"]:
+            opt.iterate()
+            it += 1
+            new = opt.error()
+            done = abs(err - new) <= c["relative_error_tol"] * max(err, 1e-12) or new < 1e-12
+            err = new
+            if done:
+                break
+        if self._stop:
+            return None
+        result = opt.values()
+        poses = {i: result.atPose3(i).matrix() for i in snap.ids}
+        return _Result(poses, it, float(err0), float(err), time.perf_counter() - t0)

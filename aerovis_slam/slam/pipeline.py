@@ -1,0 +1,299 @@
+"""Run the SLAM pipeline on a canonical sequence: :func:`run_slam` -> :class:`SlamResult`.
+
+Modes (paper Sec. III-C):
+
+* ``sync``: frames at a fixed rate (``config.rate_hz``, e.g. 50 Hz); every step is processed however
+  long it takes (the accuracy setting, the paper's OKVIS2-SE+ column). The reported latency is what
+  a live system would see with a frame queue: a frame waits until the previous one is done.
+* ``async``: the frontend always takes the newest state when it is free (the real-time setting).
+  Offline, the recording is replayed on a simulated clock that advances by the measured processing
+  time of each iteration, so the frames chosen and the latencies are what this machine would have
+  produced live, deterministic given the timings. The state at clock ``c`` holds every event up to
+  the newest IMU sample at or before ``c`` (events wait for IMU coverage).
+* ``live``: wall-clock replay: a preprocessing thread ingests events at sensor speed while the
+  frontend snapshots the buffers whenever it is free.
+
+Preprocessing (reading, ingesting events) runs beside the frontend in the paper's design; it is
+timed (``stage_ms["preprocess"]``) but, in ``async`` mode, not charged to the simulated clock.
+
+Threads: the event reader (and in ``live`` mode the preprocessor) end when the run ends, on an
+error, on ``stop_event`` and on KeyboardInterrupt; a stopped run returns its partial trajectory with
+``complete=False`` (and says so in ``status``).
+
+Example (a sketch; see ``aerovis-slam run``)::
+
+    from aerovis_slam.slam.pipeline import load_config, run_slam
+    from aerovis_slam.slam.detectors import StereoClassicalDetector
+    res = run_slam("seq.h5", StereoClassicalDetector("orb"), load_config("accurate"), mode="sync")
+    res.t_us, res.pose7      # T_world_body outputs (world: gravity-aligned, origin at the first pose)
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from ..errors import DataError
+from ..geometry import matrix_to_pose7
+from ..io.sequence import Sequence
+from .cameras import StereoCameras
+from .config import MODES, SlamConfig, load_config
+from .imu import ImuStream
+from .odometry import StereoInertialOdometry, WarningLog
+from .preprocessing import EventFeeder, EventReader, LivePreprocessor
+
+__all__ = ["SlamResult", "load_config", "run_slam"]
+
+STAGES = ("preprocess", "mcts", "detector", "matching", "tracking", "keyframe", "backend", "loop", "total")
+
+
+@dataclass
+class SlamResult:
+    """Outcome of :func:`run_slam`.
+
+    Attributes:
+        t_us: (N,) int64 times of the pose outputs (µs, sequence clock).
+        pose7: (N, 7) ``T_world_body`` as ``tx ty tz qx qy qz qw`` (world: gravity-aligned, z up,
+            origin and yaw at the first estimated body pose; loop-closure corrections applied from
+            the moment they arrive, as a live system would output them).
+        latency_ms: (N,) event time (the frame's ``tau``) -> pose output.
+        stage_ms: per-stage durations per iteration (``preprocess``, ``mcts``, ``detector``,
+            ``matching``, ``tracking``, ``keyframe``, ``backend``, ``loop``, ``total``).
+        wall_s: wall time of the run. sequence_duration_s: replayed span of the recording.
+        loop_closures: closures reported by the loop closer. tracking_losses: map re-initialisations.
+        warnings: distinct warnings with repeat counts. status: ``ok`` | ``failed: ...`` | ``stopped: ...``.
+        complete: False when stopped early or failed (the trajectory is partial).
+        mode, detector, config: what ran. keyframes: keyframes created. tracked: (N,) bool visual tracking.
+        info: counters (events, dropped by the rate cap, IMU gaps, landmarks, loop corrections applied).
+    """
+
+    t_us: np.ndarray
+    pose7: np.ndarray
+    latency_ms: np.ndarray
+    stage_ms: dict[str, list[float]]
+    wall_s: float
+    sequence_duration_s: float
+    loop_closures: int
+    tracking_losses: int
+    warnings: list[str]
+    status: str
+    complete: bool
+    mode: str = "sync"
+    detector: str = ""
+    config: str = ""
+    keyframes: int = 0
+    tracked: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    info: dict = field(default_factory=dict)
+
+    @property
+    def rate_hz(self) -> float:
+        """Pose outputs per second of recording."""
+        return len(self.t_us) / self.sequence_duration_s if self.sequence_duration_s > 0 else 0.0
+
+
+def _open_inputs(path: Path):
+    with Sequence(path) as seq:
+        if not seq.has_calib:
+            raise DataError(path, "no /calib: the SLAM runtime needs the stereo calibration (cam0, cam1 with T_imu_cam)")
+        calib = seq.calib
+        imu = seq.imu
+        if imu is None or len(imu) < 2:
+            raise DataError(path, "no /imu samples: stereo event-inertial SLAM needs the IMU")
+        for cam in ("cam0", "cam1"):
+            if cam not in seq.cameras:
+                raise DataError(path, f"no /events/{cam}: stereo SLAM needs cam0 (left) and cam1 (right); found {seq.cameras}")
+        ranges = [seq.time_range(c) for c in ("cam0", "cam1")]
+    return calib, imu, ranges
+
+
+def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | None = "sync", loop_closer=None,
+             progress: bool = True, stop_event: threading.Event | None = None) -> SlamResult:
+    """Estimate the body trajectory of a stereo event + IMU sequence.
+
+    Args:
+        sequence: canonical ``.h5`` sequence (events cam0/cam1, IMU, calibration).
+        detector: stereo detector (``detect``, ``mcts_kind``, ``mcts_params``, ``size_multiple``; see
+            :mod:`aerovis_slam.slam.detectors`).
+        config: settings (:func:`load_config`).
+        mode: ``sync`` | ``async`` | ``live`` (None: ``config.mode``).
+        loop_closer: optional ``LoopCloser`` (closed at the end of the run).
+        progress: tqdm bar on stderr over sequence time.
+        stop_event: set it (from another thread) to stop early.
+
+    Raises:
+        DataError: the sequence lacks what SLAM needs (calibration, IMU, a camera), or bad mode.
+    """
+    path = Path(sequence)
+    mode = mode or config.mode
+    if mode not in MODES:
+        raise DataError(None, f"mode must be one of {MODES}, got {mode!r}")
+    calib, imu, ranges = _open_inputs(path)
+    cams = StereoCameras.from_rig(calib, max_width=config.input.max_width, max_height=config.input.max_height,
+                                  size_multiple=int(getattr(detector, "size_multiple", 1)), path=path)
+    stream = ImuStream(imu, max_gap_us=int(config.tracking.max_imu_gap_ms * 1000))
+    log = WarningLog()
+    gaps = stream.gaps(stream.t_first, stream.t_last)
+    if gaps:
+        longest = max(b - a for a, b in gaps)
+        log.warn("imu-gaps", f"{len(gaps)} IMU gap(s) longer than {config.tracking.max_imu_gap_ms:g} ms "
+                             f"(longest {longest / 1000:.1f} ms): integration bridges them with interpolated samples")
+    ev_first = min(r[0] for r in ranges if r is not None) if any(ranges) else stream.t_first
+    ev_last = max(r[1] for r in ranges if r is not None) if any(ranges) else stream.t_last
+    frame_us = int(round(1e6 / config.rate_hz))
+    t_begin = max(stream.t_first, ev_first) + frame_us
+    t_end = min(stream.t_last, max(ev_last, stream.t_first))
+    if t_end <= t_begin:
+        raise DataError(path, f"events ({ev_first}..{ev_last} µs) and IMU ({stream.t_first}..{stream.t_last} µs) "
+                              "do not overlap by more than one frame")
+    odo = StereoInertialOdometry(cams, stream, calib.imu, config, loop_closer=loop_closer, log=log)
+    # the setting's detection threshold for learned detectors (restored after the run)
+    old_threshold = getattr(detector, "threshold", None)
+    if config.detector.threshold is not None and old_threshold is not None:
+        detector.threshold = float(config.detector.threshold)
+    rate_cap = config.input.rate_cap_mev_s * 1e6 if config.input.rate_cap_mev_s else None
+    stop_event = stop_event or threading.Event()
+
+    t_out: list[int] = []
+    T_out: list[np.ndarray] = []
+    lat: list[float] = []
+    tracked: list[bool] = []
+    stages: dict[str, list[float]] = {s: [] for s in STAGES}
+    status, complete = "ok", True
+    failure_trace = None
+    reader = live = None
+    bar = tqdm(total=round((t_end - t_begin) * 1e-6, 3), unit="s", desc=f"slam {path.stem} ({mode})", disable=not progress,
+               leave=False, file=sys.stderr, bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} s [{elapsed}<{remaining}]")
+    wall0 = time.perf_counter()
+    shown = t_begin
+
+    def record(res, tau: int, latency_us: float, pre_ms: float, mcts_ms: float, proc_ms: float):
+        nonlocal shown
+        if odo.rotate_outputs is not None:  # gravity became known: earlier outputs into the world frame
+            for i in range(len(T_out)):
+                T_out[i] = odo.rotate_outputs @ T_out[i]
+            odo.rotate_outputs = None
+        t_out.append(int(tau))
+        T_out.append(res.T_world_body)
+        lat.append(latency_us / 1000.0)
+        tracked.append(bool(res.tracked))
+        stages["preprocess"].append(pre_ms)
+        stages["mcts"].append(mcts_ms)
+        for k in ("detector", "matching", "tracking", "keyframe", "backend", "loop"):
+            stages[k].append(float(res.timings_ms.get(k, 0.0)))
+        stages["total"].append(proc_ms)
+        bar.update(max(0.0, (tau - shown) * 1e-6))
+        shown = max(shown, tau)
+
+    def iterate(tau: int, pre_ms: float, buffers=None):
+        """MCTS + odometry at tau. Returns (result, mcts_ms, processing_ms)."""
+        t0 = time.perf_counter()
+        if buffers is None:
+            buffers, _ = feeder.snapshot()
+        batch = feeder.mcts_batch(buffers, tau)
+        t1 = time.perf_counter()
+        res = odo.process(tau, batch, detector)
+        t2 = time.perf_counter()
+        return res, (t1 - t0) * 1e3, (t2 - t0) * 1e3
+
+    try:
+        reader = EventReader(path, chunk_events=config.input.chunk_events, prefetch=config.input.prefetch_chunks,
+                             stop_event=stop_event)
+        feeder = EventFeeder(reader, cams, mcts_kind=detector.mcts_kind, mcts_params=detector.mcts_params,
+                             rate_cap_ev_s=rate_cap)
+        min_dt_us = int(round(1e6 / config.max_rate_hz))
+        if mode == "sync":
+            finish = float(t_begin)
+            tau = t_begin
+            while tau <= t_end and not stop_event.is_set():
+                tp = time.perf_counter()
+                feeder.advance_to(tau)
+                pre_ms = (time.perf_counter() - tp) * 1e3
+                res, mcts_ms, proc_ms = iterate(tau, pre_ms)
+                finish = max(finish, float(tau)) + proc_ms * 1e3  # live frame queue: wait for the previous frame
+                record(res, tau, finish - tau, pre_ms, mcts_ms, proc_ms)
+                tau += frame_us
+        elif mode == "async":
+            clock = float(t_begin)
+            last_tau = None
+            while clock <= t_end and not stop_event.is_set():
+                tau = stream.covered_until(int(clock))
+                if last_tau is not None and tau < last_tau + min_dt_us:
+                    # nothing new enough: the frontend idles until the next IMU sample after the rate cap
+                    nxt = int(np.searchsorted(stream.t, last_tau + min_dt_us, side="left"))
+                    if nxt >= len(stream.t):
+                        break
+                    clock = max(clock, float(stream.t[nxt]))
+                    continue
+                tp = time.perf_counter()
+                feeder.advance_to(tau)
+                pre_ms = (time.perf_counter() - tp) * 1e3
+                res, mcts_ms, proc_ms = iterate(tau, pre_ms)
+                clock += proc_ms * 1e3
+                record(res, tau, clock - tau, pre_ms, mcts_ms, proc_ms)
+                last_tau = tau
+        else:  # live
+            live = LivePreprocessor(feeder, stream.covered_until, t_begin - frame_us, t_end, stop_event=stop_event)
+            last_tau = None
+            while not stop_event.is_set():
+                if live.error is not None:
+                    raise live.error
+                now = live.now_us()
+                if now > t_end or (live.done.is_set() and last_tau is not None and last_tau >= feeder.ingested_until):
+                    break
+                buffers, tau = feeder.snapshot()
+                if tau < t_begin or (last_tau is not None and tau < last_tau + min_dt_us):
+                    time.sleep(0.0005)
+                    continue
+                res, mcts_ms, proc_ms = iterate(tau, 0.0, buffers)
+                record(res, tau, live.now_us() - tau, 0.0, mcts_ms, proc_ms)
+                last_tau = tau
+            if live.busy_s:
+                stages["preprocess"] = [live.busy_s * 1e3 / max(len(t_out), 1)] * len(t_out)
+        if stop_event.is_set():
+            status, complete = "stopped: stop_event set", False
+    except KeyboardInterrupt:
+        status, complete = "stopped: interrupted (KeyboardInterrupt)", False
+    except Exception as exc:  # the run ends cleanly and reports; input errors were raised before
+        status, complete = f"failed: {type(exc).__name__}: {exc}", False
+        failure_trace = traceback.format_exc()
+    finally:
+        if live is not None:
+            live.close()
+        if reader is not None:
+            reader.close()
+        if loop_closer is not None:
+            loop_closer.close()
+        if old_threshold is not None:
+            detector.threshold = old_threshold
+        bar.close()
+    wall = time.perf_counter() - wall0
+    pose7 = matrix_to_pose7(np.stack(T_out)) if T_out else np.zeros((0, 7))
+    if complete and len(t_out) and t_out[-1] < t_end - 2 * max(frame_us, min_dt_us) and mode != "live":
+        status, complete = f"stopped: the event stream ended at {t_out[-1]} µs, before {t_end} µs", False
+    info = {
+        "events": int(sum(feeder.events_in)) if "feeder" in locals() else 0,
+        "dropped_rate_cap": int(feeder.dropped_rate_cap) if "feeder" in locals() else 0,
+        "imu_gaps": len(gaps),
+        "landmarks": len(odo.lmap),
+        "loop_corrections_applied": odo.loop_corrections,
+        "initialized": odo.initialized,
+        "resolution": [cams.left.width, cams.left.height],
+        "t_begin_us": int(t_begin), "t_end_us": int(t_end),
+    }
+    if failure_trace:
+        info["traceback"] = failure_trace
+    return SlamResult(
+        t_us=np.asarray(t_out, np.int64), pose7=pose7, latency_ms=np.asarray(lat, np.float64),
+        stage_ms={k: v for k, v in stages.items()}, wall_s=wall, sequence_duration_s=(t_end - t_begin) * 1e-6,
+        loop_closures=int(getattr(loop_closer, "n_closures", 0)) if loop_closer is not None else 0,
+        tracking_losses=odo.tracking_losses, warnings=log.as_list(), status=status, complete=complete, mode=mode,
+        detector=str(getattr(detector, "name", type(detector).__name__)), config=config.name, keyframes=odo.n_keyframes,
+        tracked=np.asarray(tracked, bool), info=info)
+
