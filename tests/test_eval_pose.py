@@ -19,7 +19,6 @@ import numpy as np
 import pytest
 
 from aerovis_slam.calib import CameraCalibration, RigCalibration
-from aerovis_slam.errors import DataError
 from aerovis_slam.events import EventArray
 from aerovis_slam.io.sequence import Sequence, SequenceWriter
 from aerovis_slam.keypoints import Keypoints, match_keypoints

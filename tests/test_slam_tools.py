@@ -417,8 +417,6 @@ def test_bench_table_and_json(tmp_path, monkeypatch, empty_config):
     assert bench_mod.classify({"status": "ok", "complete": True, "ate_rmse_m": 0.5, "path_length_m": 1.0}) == "diverged"
 
 
-@pytest.mark.xfail(strict=False, reason="the pipeline does not initialise on the tiny preset yet (0 3D-2D inliers, IMU-only "
-                   "trajectory), whose near-degenerate alignment makes the run's and the file's ATE differ; issue #7 open")
 def test_cli_run_end_to_end_on_tiny_matches_eval(tmp_path, capsys):
     """The real pipeline with the shipped bundle on the 1 s tiny sequence; ``eval`` of the written
     trajectory against the sequence's GT reproduces the run's own ATE (same association by

@@ -12,7 +12,6 @@ import pytest
 
 torch = pytest.importorskip("torch", reason="training needs the train extra (torch)")
 
-from aerovis_slam import geometry as geo  # noqa: E402
 from aerovis_train.correspondences import (  # noqa: E402
     IGNORE,
     UNMATCHED,

@@ -61,21 +61,28 @@ class Observations:
 
     Attributes:
         landmark: (M,) int64 landmark ids. cam: (M,) int8 0 = left, 1 = right. xy: (M, 2) pixels.
+        shape: (M, 2, 2) covariance shape of each observation (identity: isotropic); the pixel noise
+            is ``pixel_sigma^2 * shape`` (see :func:`~aerovis_slam.slam.frontend.edge_shapes`).
     """
 
     landmark: np.ndarray
     cam: np.ndarray
     xy: np.ndarray
+    shape: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.shape is None:
+            self.shape = np.broadcast_to(np.eye(2), (len(self.landmark), 2, 2)).copy()
 
     @classmethod
     def empty(cls) -> "Observations":
-        return cls(np.zeros(0, np.int64), np.zeros(0, np.int8), np.zeros((0, 2)))
+        return cls(np.zeros(0, np.int64), np.zeros(0, np.int8), np.zeros((0, 2)), np.zeros((0, 2, 2)))
 
     def __len__(self) -> int:
         return len(self.landmark)
 
     def subset(self, mask: np.ndarray) -> "Observations":
-        return Observations(self.landmark[mask], self.cam[mask], self.xy[mask])
+        return Observations(self.landmark[mask], self.cam[mask], self.xy[mask], self.shape[mask])
 
     @classmethod
     def concatenate(cls, parts: list["Observations"]) -> "Observations":
@@ -83,15 +90,25 @@ class Observations:
         if not parts:
             return cls.empty()
         return cls(np.concatenate([p.landmark for p in parts]), np.concatenate([p.cam for p in parts]),
-                   np.concatenate([p.xy for p in parts]))
+                   np.concatenate([p.xy for p in parts]), np.concatenate([p.shape for p in parts]))
 
 
-def pixel_noise(cfg: BackendConfig) -> gtsam.noiseModel.Base:
-    """Isotropic pixel noise wrapped in the configured robust loss (threshold in sigmas)."""
-    base = gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma)
+def pixel_noise(cfg: BackendConfig, shape: np.ndarray | None = None) -> gtsam.noiseModel.Base:
+    """Pixel noise ``pixel_sigma^2 * shape`` (isotropic without a shape) in the configured robust loss.
+
+    The robust threshold ``robust_k`` is in sigmas of the whitened residual.
+    """
+    if shape is None:
+        base = gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma)
+    else:
+        base = gtsam.noiseModel.Gaussian.Covariance(cfg.pixel_sigma ** 2 * np.asarray(shape, np.float64))
     k = cfg.robust_k
     est = gtsam.noiseModel.mEstimator.Huber.Create(k) if cfg.robust == "huber" else gtsam.noiseModel.mEstimator.Cauchy.Create(k)
     return gtsam.noiseModel.Robust.Create(est, base)
+
+
+def _noise_for(cfg: BackendConfig, shape: np.ndarray, isotropic) -> gtsam.noiseModel.Base:
+    return isotropic if np.allclose(shape, np.eye(2)) else pixel_noise(cfg, shape)
 
 
 def bias_noise(acc_sigma: float, gyro_sigma: float) -> gtsam.noiseModel.Base:
@@ -100,13 +117,17 @@ def bias_noise(acc_sigma: float, gyro_sigma: float) -> gtsam.noiseModel.Base:
 
 @dataclass
 class SmootherUpdate:
-    """What one keyframe update did: ``iterations``, ``time_ms``, ``error`` (after), ``landmarks`` in the window."""
+    """What one keyframe update did: LM ``iterations``, ``time_ms``, ``error`` (after), ``landmarks`` in
+    the window, ``new_landmarks`` added, observations not added (``dropped_observations``: landmarks
+    outside the window seen by one camera only) and old observations removed before marginalisation."""
 
     iterations: int = 0
     time_ms: float = 0.0
     error: float = float("nan")
     landmarks: int = 0
+    new_landmarks: int = 0
     dropped_observations: int = 0
+    removed_observations: int = 0
 
 
 class KeyframeSmoother:
@@ -219,7 +240,7 @@ class KeyframeSmoother:
         stereo_seen = set(ids[counts >= 2].tolist())
         dropped = 0
         new_keys = 0
-        for j, cam, xy in zip(obs.landmark.tolist(), obs.cam.tolist(), obs.xy):
+        for j, cam, xy, shape in zip(obs.landmark.tolist(), obs.cam.tolist(), obs.xy, obs.shape):
             key = self.lm_key.get(j)
             if key is None:
                 if j not in stereo_seen or j not in landmark_positions:
@@ -233,14 +254,17 @@ class KeyframeSmoother:
                 # against pixel-accurate stereo it weighs nothing.
                 graph.add(gtsam.PriorFactorPoint3(key, p, self._lm_prior))
                 new_keys += 1
-            graph.add(gtsam.GenericProjectionFactorCal3_S2(np.asarray(xy, np.float64), self._noise, X(kf_id), key,
-                                                           self._cal[cam], False, False, self._bPs[cam]))
+            graph.add(gtsam.GenericProjectionFactorCal3_S2(np.asarray(xy, np.float64), _noise_for(self.cfg, shape, self._noise),
+                                                           X(kf_id), key, self._cal[cam], False, False, self._bPs[cam]))
             stamps[key] = float(seq)
             self.lm_time[j] = seq
             self.lm_obs.setdefault(j, []).append(seq)
         remove = self._observations_to_drop(seq)
         # Iteration budget: as many LM iterations as the measured cost allows (at least one).
-        n_iter = int(np.clip(self.cfg.time_budget_ms / max(self._iter_ms, 1e-3), 1, self.cfg.max_iterations))
+        # (no budget: always max_iterations, so that a sync run does not depend on the machine's load)
+        budget = self.cfg.time_budget_ms
+        n_iter = self.cfg.max_iterations if budget is None else int(np.clip(budget / max(self._iter_ms, 1e-3), 1,
+                                                                            self.cfg.max_iterations))
         self.smoother.params().setMaxIterations(n_iter)
         t0 = time.perf_counter()
         result = self.smoother.update(graph, values, stamps, remove)
@@ -260,8 +284,8 @@ class KeyframeSmoother:
         self.estimates = {k: NavEstimate(est.atPose3(X(k)).matrix(), np.asarray(est.atVector(V(k))).copy(),
                                          est.atConstantBias(B(k))) for k in self.kf_ids}
         self._values = est
-        return SmootherUpdate(iterations=iters, time_ms=dt_ms, error=float(result.getError()),
-                              landmarks=len(self.lm_key), dropped_observations=dropped)
+        return SmootherUpdate(iterations=iters, time_ms=dt_ms, error=float(result.getError()), landmarks=len(self.lm_key),
+                              new_landmarks=new_keys, dropped_observations=dropped, removed_observations=len(remove))
 
     def _observations_to_drop(self, seq: int) -> list[int]:
         """Factor slots of the observations that keyframes leaving at this update made of staying landmarks.
@@ -373,8 +397,8 @@ def track_frame(cams: StereoCameras, cfg: BackendConfig, kf_state: NavEstimate,
     bps = [c.body_P_sensor for c in cams.cams]
     for k, i in enumerate(sel):
         c = int(obs.cam[i])
-        graph.add(gtsam.GenericProjectionFactorCal3_S2(np.asarray(obs.xy[i], np.float64), noise, X(k1), L(int(inv[k])),
-                                                       cal[c], False, False, bps[c]))
+        graph.add(gtsam.GenericProjectionFactorCal3_S2(np.asarray(obs.xy[i], np.float64), _noise_for(cfg, obs.shape[i], noise),
+                                                       X(k1), L(int(inv[k])), cal[c], False, False, bps[c]))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(int(cfg.tracking_iterations))
     opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)

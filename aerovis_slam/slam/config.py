@@ -41,6 +41,9 @@ class InputConfig:
         max_width, max_height: MCTS resolution cap; larger sensors are downsampled (area binning,
             intrinsics scaled; the paper's drone goes 1280x720 -> 424x240).
         rate_cap_mev_s: per-camera event-rate cap in Mev/s (None: none); the paper caps at 35.
+        min_new_events_per_px: a frame with fewer new events (both cameras, per pixel of one camera)
+            than this since the previous frame is propagated with the IMU alone (static or dark
+            stretch: the time surfaces have not changed).
         chunk_events: events per read from the file (the prefetch thread's unit).
         prefetch_chunks: chunks read ahead per camera (bounded memory).
     """
@@ -48,6 +51,7 @@ class InputConfig:
     max_width: int = 424
     max_height: int = 240
     rate_cap_mev_s: float | None = 35.0
+    min_new_events_per_px: float = 0.005
     chunk_events: int = 200_000
     prefetch_chunks: int = 4
 
@@ -90,6 +94,9 @@ class MatchingConfig:
             keypoints drift along edges as a track ages (measured on the simulator: median error
             1.7 px under 50 ms, 2.6 px at 0.4-1 s, 5 px beyond 1 s), and old, drifted tracks bias the
             motion; fresh stereo landmarks replace them.
+        edge_max_ratio: observations on edges get a noise variance along the edge up to this many
+            times the variance across it (the structure tensor's anisotropy; 1 = isotropic noise),
+            see :func:`~aerovis_slam.slam.frontend.edge_shapes`.
         update_descriptors: a landmark's descriptor follows its newest keyframe observation (else it
             keeps the one it was created with, which cannot drift onto a neighbouring feature).
     """
@@ -105,6 +112,7 @@ class MatchingConfig:
     window_px_lost: float = 30.0
     max_reproj_px: float = 3.0
     max_landmark_age_s: float | None = None
+    edge_max_ratio: float = 25.0
     update_descriptors: bool = True
 
 
@@ -141,7 +149,7 @@ class KeyframeConfig:
 
     overlap_threshold: float = 0.6
     cell_px: int = 16
-    min_interval_s: float = 0.04
+    min_interval_s: float = 0.1
     max_interval_s: float = 0.5
     min_tracked: int = 40
 
@@ -154,7 +162,7 @@ class BackendConfig:
         window_keyframes: keyframes kept in the smoother (older ones are marginalised).
         max_iterations: Levenberg-Marquardt iterations per keyframe update.
         time_budget_ms: the iteration count is lowered so that an update fits this budget
-            (from the measured time per iteration).
+            (from the measured time per iteration); None: always ``max_iterations`` (deterministic).
         tracking_iterations: LM iterations of the per-frame (motion-only) optimisation.
         tracking_max_observations: observations it uses (spread over the image; all are checked).
         pixel_sigma: reprojection noise (px, 1 sigma).
@@ -164,9 +172,9 @@ class BackendConfig:
         max_landmarks: landmarks in the local map used for matching (the oldest are dropped first).
     """
 
-    window_keyframes: int = 6
+    window_keyframes: int = 8
     max_iterations: int = 6
-    time_budget_ms: float = 60.0
+    time_budget_ms: float | None = 60.0
     tracking_iterations: int = 4
     tracking_max_observations: int = 120
     pixel_sigma: float = 1.0

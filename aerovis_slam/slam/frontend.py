@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from ..keypoints import Keypoints, pair_similarity
@@ -166,6 +167,40 @@ def match_to_map(lmap: LandmarkMap, ids: np.ndarray, T_world_body_pred: np.ndarr
     sim[r, c] = pair_similarity(lmap.desc, kps.descriptors, ids_v[rows[r]], c)
     m = best_matches(sim, allowed, min_similarity, ratio)
     return MapMatches(ids_v[rows[m[:, 0]]], m[:, 1].astype(np.int64), ids_v)
+
+
+def edge_shapes(img: np.ndarray, xy: np.ndarray, *, window: int = 7, max_ratio: float = 100.0) -> np.ndarray:
+    """Covariance shapes (N, 2, 2) of keypoint positions from the local structure tensor.
+
+    An event keypoint on an edge is well localised across the edge but can slide along it between
+    frames (the aperture problem: on the simulator's floor lines tracked keypoints drift several
+    pixels along them, always lagging the motion, which biases the estimated motion). The shape
+    ``e1 e1^T + r e2 e2^T`` (``e1`` across the edge, ``e2`` along it, ``r = lambda1 / lambda2`` of the
+    tensor clipped to ``[1, max_ratio]``) keeps the full weight across the edge and scales the
+    variance along it by the edge's anisotropy; corners stay isotropic.
+
+    Args:
+        img: (H, W) float32 image (e.g. the blurred channel mean of the MCTS).
+        xy: (N, 2) pixels. window: tensor averaging window. max_ratio: variance ratio cap.
+    """
+    n = len(xy)
+    if n == 0:
+        return np.zeros((0, 2, 2))
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
+    k = (int(window), int(window))
+    sxx = cv2.boxFilter(gx * gx, -1, k)
+    sxy = cv2.boxFilter(gx * gy, -1, k)
+    syy = cv2.boxFilter(gy * gy, -1, k)
+    H, W = img.shape
+    u = np.clip(np.rint(xy[:, 0]).astype(np.int64), 0, W - 1)
+    v = np.clip(np.rint(xy[:, 1]).astype(np.int64), 0, H - 1)
+    S = np.stack([np.stack([sxx[v, u], sxy[v, u]], -1), np.stack([sxy[v, u], syy[v, u]], -1)], -2).astype(np.float64)
+    lam, vec = np.linalg.eigh(S)  # ascending: lam[:, 0] small (along the edge), lam[:, 1] large
+    ratio = np.clip(lam[:, 1] / np.maximum(lam[:, 0], 1e-12 * np.maximum(lam[:, 1], 1e-30)), 1.0, max_ratio)
+    ratio = np.where(lam[:, 1] > 1e-12, ratio, 1.0)
+    e_along, e_across = vec[:, :, 0], vec[:, :, 1]
+    return (np.einsum("ni,nj->nij", e_across, e_across) + ratio[:, None, None] * np.einsum("ni,nj->nij", e_along, e_along))
 
 
 def spread_subset(xy: np.ndarray, n: int, cell_px: int, width: int) -> np.ndarray:

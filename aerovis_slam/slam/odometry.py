@@ -24,7 +24,8 @@ Frames: the world W is gravity-aligned (z up) with its origin and yaw at the fir
 body B is the IMU frame; outputs are ``T_world_body``. Before initialisation, poses live in the
 frame of the first body pose V and are rotated into W when gravity is known.
 
-Failures (warned, counted): a frame without enough inliers is propagated with the IMU; after
+Failures (warned, counted): a frame without new events (static or dark stretch) or without enough
+inliers is propagated with the IMU; after
 ``tracking.loss_frames`` such frames (or ``loss_time_s``) the map is dropped (a tracking loss) and
 re-initialised from the next stereo frame with landmarks, continuing from the IMU-propagated state.
 """
@@ -45,7 +46,7 @@ from ..keypoints import Keypoints, match_keypoints
 from .backend import KeyframeSmoother, NavEstimate, Observations, track_frame
 from .cameras import StereoCameras
 from .config import SlamConfig
-from .frontend import KeyframeSelector, LandmarkMap, match_to_map, spread_subset
+from .frontend import KeyframeSelector, LandmarkMap, edge_shapes, match_to_map, spread_subset
 from .imu import ImuStream, align_visual_inertial, gravity_rotation_from_acc, new_preintegration, preintegration_params
 from .ransac import bearings, pnp_ransac, position_given_rotation, relative_pose_ransac, rotation_ransac
 from .stereo import match_stereo
@@ -196,14 +197,25 @@ class StereoInertialOdometry:
         return R_w_ckf @ R_10.T @ R_bc.T
 
     # ------------------------------------------------------------------------------------------
-    def process(self, tau: int, batch: np.ndarray, detector) -> FrameResult:
-        """Estimate the pose at ``tau`` from the stereo MCTS ``batch`` (2, C, H, W)."""
+    def process(self, tau: int, batch: np.ndarray, detector, new_events: int | None = None) -> FrameResult:
+        """Estimate the pose at ``tau`` from the stereo MCTS ``batch`` (2, C, H, W).
+
+        Args:
+            new_events: events ingested (both cameras) since the previous frame. Below
+                ``input.min_new_events_per_px`` the time surfaces are those of the previous frame (a
+                static or dark stretch): they carry no information about the motion since, so the
+                frame is propagated with the IMU alone (a static camera's IMU says static anyway).
+        """
+        cfg = self.cfg
+        if new_events is not None and self.t_last is not None:
+            min_ev = cfg.input.min_new_events_per_px * self.cams.left.width * self.cams.left.height
+            if new_events < min_ev:
+                return self._imu_only_frame(tau, f"{new_events} new events (< {min_ev:.0f})")
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
         kpL, kpR = self._detect(detector, batch)
         timings["detector"] = (time.perf_counter() - t0) * 1e3
         self.frame += 1
-        cfg = self.cfg
         if self.t_last is None:  # the very first frame: identity pose in the vision frame
             self.t_first = tau
             self.state = NavEstimate(np.eye(4), np.zeros(3), gtsam.imuBias.ConstantBias())
@@ -245,9 +257,15 @@ class StereoInertialOdometry:
 
         # -- state estimate ---------------------------------------------------------------------
         t2 = time.perf_counter()
+        # images of the frame (blurred channel means): observation shapes now, stereo search at keyframes
+        images = tuple(cv2.GaussianBlur(np.ascontiguousarray(b.mean(0)), (0, 0), 1.0) for b in batch[:2])
+        ratio = cfg.matching.edge_max_ratio
+        shL = edge_shapes(images[0], kpL.xy[mL.keypoint[inlL]], max_ratio=ratio)
+        shR = edge_shapes(images[1], kpR.xy[mR.keypoint[inlR]], max_ratio=ratio)
         obs = Observations(np.concatenate([mL.landmark[inlL], mR.landmark[inlR]]),
                            np.concatenate([np.zeros(int(inlL.sum()), np.int8), np.ones(int(inlR.sum()), np.int8)]),
-                           np.concatenate([kpL.xy[mL.keypoint[inlL]], kpR.xy[mR.keypoint[inlR]]]).astype(np.float64))
+                           np.concatenate([kpL.xy[mL.keypoint[inlL]], kpR.xy[mR.keypoint[inlR]]]).astype(np.float64),
+                           np.concatenate([shL, shR]))
         obs_kp = np.concatenate([mL.keypoint[inlL], mR.keypoint[inlR]])
         visual = n_inl >= cfg.ransac.min_inliers
         tracked = False
@@ -298,16 +316,8 @@ class StereoInertialOdometry:
             self.fail_count = 0
             self.t_last_good = tau
         else:
-            self.fail_count += 1
             self.log.warn("imu-only", f"t={tau} µs: {n_inl} 3D-2D inliers (< {cfg.ransac.min_inliers}): frame propagated with the IMU only")
-            lost_time = (tau - self.t_last_good) * 1e-6 >= cfg.tracking.loss_time_s
-            if self.initialized and not self.lost and (self.fail_count >= cfg.tracking.loss_frames or lost_time):
-                self.lost = True
-                self.tracking_losses += 1
-                self.log.warn("tracking-loss", f"t={tau} µs: tracking lost after {self.fail_count} frames without visual "
-                                               "tracking; map dropped, re-initialising from stereo")
-                self.lmap.retire_all()
-                self.kfsel.clear()
+            self._visual_failure(tau)
         # landmark statistics (culling of landmarks that project but rarely match)
         self.lmap.n_projected[np.union1d(mL.projected, mR.projected)] += 1
         seen = np.unique(obs.landmark)
@@ -319,8 +329,6 @@ class StereoInertialOdometry:
         t3 = time.perf_counter()
         is_kf = self._keyframe_needed(tau, kpL, obs, obs_kp, tracked)
         if is_kf:
-            # the images for the stereo row search: channel means of the MCTS, blurred by 1 px
-            images = tuple(cv2.GaussianBlur(np.ascontiguousarray(b.mean(0)), (0, 0), 1.0) for b in batch[:2])
             is_kf = self._make_keyframe(tau, kpL, kpR, state, obs, obs_kp, timings, images)
             if is_kf and self.initialized:
                 state = self.kf_state
@@ -338,17 +346,63 @@ class StereoInertialOdometry:
 
         # -- loop-closure corrections (never waits) -------------------------------------------------
         t4 = time.perf_counter()
-        if self.loop_closer is not None and self.initialized:
-            corrected = self.loop_closer.poll()
-            if corrected:
-                known = [k for k in corrected if k in self.kf_odom]
-                if known:
-                    k = max(known)
-                    self.T_corr = np.asarray(corrected[k], np.float64) @ invert_T(self.kf_odom[k])
-                    self.loop_corrections += 1
+        self._poll_loop_closer()
         timings["loop"] = (time.perf_counter() - t4) * 1e3
         T_out = self.T_corr @ self.state.T_world_body
         return FrameResult(tau, T_out, tracked, is_kf, n_inl, timings)
+
+    def _imu_only_frame(self, tau: int, why: str) -> FrameResult:
+        """A frame without visual information: IMU propagation, failure bookkeeping, loop corrections."""
+        t0 = time.perf_counter()
+        self.frame += 1
+        state = self._predict(tau)
+        self.log.warn("no-events", f"t={tau} µs: {why}: frame propagated with the IMU only")
+        self._visual_failure(tau)
+        if self.initialized and self.kf_t is not None and (tau - self.kf_t) * 1e-6 >= self.cfg.keyframes.max_interval_s:
+            # keep the smoother's IMU chain bounded: a keyframe with the IMU factor only
+            self.kf_id += 1
+            try:
+                self.smoother.add_keyframe(self.kf_id, self.pim, state, Observations.empty(), {})
+                _, state = self.smoother.latest
+            except RuntimeError as exc:
+                self.log.warn("backend-reset", f"t={tau} µs: smoother update failed ({exc}); backend restarted")
+                self._restart_smoother(self.kf_id, tau, state)
+            self.kf_state = state
+            self.pim = new_preintegration(self.params, state.bias)
+            self.kf_t = tau
+        self.state = state
+        self.t_last = tau
+        if not self.initialized:
+            self.init_frames = []
+            self._try_initialize(tau, None, None)
+        self._poll_loop_closer()
+        ms = (time.perf_counter() - t0) * 1e3
+        return FrameResult(tau, self.T_corr @ self.state.T_world_body, False, False, 0, {"tracking": ms})
+
+    def _visual_failure(self, tau: int) -> None:
+        """Count a frame without visual tracking; declare a tracking loss when they pile up."""
+        cfg = self.cfg
+        self.fail_count += 1
+        lost_time = (tau - self.t_last_good) * 1e-6 >= cfg.tracking.loss_time_s
+        if self.initialized and not self.lost and (self.fail_count >= cfg.tracking.loss_frames or lost_time):
+            self.lost = True
+            self.tracking_losses += 1
+            self.log.warn("tracking-loss", f"t={tau} µs: tracking lost after {self.fail_count} frames without visual "
+                                           "tracking; map dropped, re-initialising from stereo")
+            self.lmap.retire_all()
+            self.kfsel.clear()
+
+    def _poll_loop_closer(self) -> None:
+        """Apply a published loop-closure correction (never waits)."""
+        if self.loop_closer is None or not self.initialized:
+            return
+        corrected = self.loop_closer.poll()
+        if corrected:
+            known = [k for k in corrected if k in self.kf_odom]
+            if known:
+                k = max(known)
+                self.T_corr = np.asarray(corrected[k], np.float64) @ invert_T(self.kf_odom[k])
+                self.loop_corrections += 1
 
     # ------------------------------------------------------------------------------------------
     def _keyframe_needed(self, tau: int, kpL: Keypoints, obs: Observations, obs_kp: np.ndarray, tracked: bool) -> bool:
@@ -401,9 +455,12 @@ class StereoInertialOdometry:
             self.lmap.desc[obs.landmark[right_only]] = kpR.descriptors[obs_kp[right_only]]
         if len(obs):
             self.lmap.last_kf[np.unique(obs.landmark)] = kf
+        ratio = mc.edge_max_ratio
         new_obs = Observations(np.concatenate([new_ids, new_ids]),
                                np.concatenate([np.zeros(len(new_ids), np.int8), np.ones(len(new_ids), np.int8)]),
-                               np.concatenate([kpL.xy[rowsL], xyR]).astype(np.float64))
+                               np.concatenate([kpL.xy[rowsL], xyR]).astype(np.float64),
+                               np.concatenate([edge_shapes(images[0], kpL.xy[rowsL], max_ratio=ratio),
+                                               edge_shapes(images[1], xyR, max_ratio=ratio)]))
         all_obs = Observations.concatenate([obs, new_obs])
         if self.initialized:
             tb = time.perf_counter()

@@ -5,7 +5,7 @@ sample at or after its timestamp exists, so the state at its time can be propaga
 wait), update a per-camera latest-timestamp buffer, and the frontend freezes the buffers and
 computes the MCTS on demand.
 
-* :class:`EventReader`: a background thread that reads event chunks of both cameras from the
+* :class:`EventReader`: background threads (one per camera) that read event chunks from the
   canonical sequence (HDF5 decompression off the processing thread), in bounded queues.
 * :class:`EventFeeder`: pulls chunks and ingests events up to a requested time into
   :class:`~aerovis_slam.mcts.TimestampBuffer` (with the sensor-to-buffer :class:`PixelMap` and the
@@ -32,12 +32,16 @@ _END = object()
 
 
 class EventReader:
-    """Reads ``cam0`` and ``cam1`` events in chunks on a background thread.
+    """Reads the events of ``cam0`` and ``cam1`` in chunks, one background thread per camera.
+
+    One thread per camera (each with its own file handle): with a single thread alternating between
+    the cameras, a full queue of one camera would block the reads the consumer waits for on the
+    other (a deadlock when the frontend jumps far ahead, as in async mode at 25 Mev/s).
 
     Args:
         path: canonical sequence file.
         chunk_events: events per chunk. prefetch: chunks queued per camera.
-        stop_event: ends the thread early when set (also set by :meth:`close`).
+        stop_event: ends the threads early when set (also set by :meth:`close`).
     """
 
     def __init__(self, path: str | Path, *, chunk_events: int = 200_000, prefetch: int = 4,
@@ -49,8 +53,10 @@ class EventReader:
         self._stop = threading.Event()
         self._outer_stop = stop_event
         self.error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name="aerovis-event-reader", daemon=True)
-        self._thread.start()
+        self._threads = {c: threading.Thread(target=self._run, args=(c,), name=f"aerovis-event-reader-{c}", daemon=True)
+                         for c in cams}
+        for t in self._threads.values():
+            t.start()
 
     def _stopped(self) -> bool:
         return self._stop.is_set() or (self._outer_stop is not None and self._outer_stop.is_set())
@@ -64,36 +70,24 @@ class EventReader:
                 continue
         return False
 
-    def _run(self) -> None:
+    def _run(self, cam: str) -> None:
         try:
             with Sequence(self.path) as seq:
-                n = {c: seq.num_events(c) if c in seq.cameras else 0 for c in self.cams}
-                pos = {c: 0 for c in self.cams}
-                last_t = {c: -(2**62) for c in self.cams}
-                active = [c for c in self.cams]
-                for c in self.cams:
-                    if n[c] == 0:
-                        self._put(c, _END)
-                        active.remove(c)
-                while active and not self._stopped():
-                    # read for the camera that is furthest behind in time, so both advance together
-                    cam = min(active, key=lambda c: last_t[c])
-                    stop = min(pos[cam] + self.chunk_events, n[cam])
-                    ev = seq.events_by_index(cam, pos[cam], stop)
-                    pos[cam] = stop
-                    last_t[cam] = int(ev.t[-1]) if len(ev) else last_t[cam]
+                n = seq.num_events(cam) if cam in seq.cameras else 0
+                pos = 0
+                while pos < n and not self._stopped():
+                    stop = min(pos + self.chunk_events, n)
+                    ev = seq.events_by_index(cam, pos, stop)
+                    pos = stop
                     if not self._put(cam, ev):
                         return
-                    if pos[cam] >= n[cam]:
-                        self._put(cam, _END)
-                        active.remove(cam)
+                self._put(cam, _END)
         except BaseException as exc:  # handed to the consumer, which re-raises it
             self.error = exc
-            for c in self.cams:
-                try:
-                    self.queues[c].put_nowait(_END)
-                except queue.Full:
-                    pass
+            try:
+                self.queues[cam].put_nowait(_END)
+            except queue.Full:
+                pass
 
     def get(self, cam: str, timeout: float = 0.1):
         """Next chunk of ``cam`` (an :class:`EventArray`), or None at the end of the stream."""
@@ -103,7 +97,7 @@ class EventReader:
             try:
                 item = self.queues[cam].get(timeout=timeout)
             except queue.Empty:
-                if self._stopped() or not self._thread.is_alive():
+                if self._stopped() or not self._threads[cam].is_alive():
                     if self.error is not None:
                         raise self.error
                     if self.queues[cam].empty():
@@ -114,7 +108,7 @@ class EventReader:
             return None if item is _END else item
 
     def close(self) -> None:
-        """Stop the thread and wait for it (idempotent)."""
+        """Stop the threads and wait for them (idempotent)."""
         self._stop.set()
         for q in self.queues.values():  # unblock a put waiting on a full queue
             try:
@@ -122,11 +116,12 @@ class EventReader:
                     q.get_nowait()
             except queue.Empty:
                 pass
-        self._thread.join(timeout=5.0)
+        for t in self._threads.values():
+            t.join(timeout=5.0)
 
     @property
     def alive(self) -> bool:
-        return self._thread.is_alive()
+        return any(t.is_alive() for t in self._threads.values())
 
 
 class EventFeeder:

@@ -201,7 +201,6 @@ def position_given_rotation(points_world: np.ndarray, xy: np.ndarray, cam_index:
     p = np.asarray(p_guess, np.float64).copy()
     if n < 2:
         return p, np.full(n, np.inf)
-    rows_A, rows_y, scales, zs = [], [], [], []
     A_list, b_list, m_list = [], [], []
     for i in range(n):
         c = int(cam_index[i])
