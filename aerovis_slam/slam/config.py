@@ -192,7 +192,13 @@ class InitConfig:
     """Initialisation of gravity, velocity and biases (stereo gives the scale).
 
     Attributes:
-        window_s: vision-only tracking this long before the visual-inertial alignment.
+        window_s: vision-only tracking this long before the visual-inertial alignment. Gravity is seen
+            through ``g t²/2`` against the visual positions' noise: with 1 cm of noise a 0.3 s window
+            leaves about 6 deg of tilt and 0.14 m/s of velocity error, 1 s about 0.6 deg and 0.04 m/s
+            (tests/test_slam_core.py). But the vision-only tracking before it drifts (keypoints lag
+            the motion as it starts), and on the bench preset 0.3 s gave the lower ATE (SuperLitE,
+            sync: slider_wall 2.02 % vs 2.15 %, handheld_office 1.46 % vs 2.71 % at 0.8 s); the
+            smoother refines gravity and velocity afterwards.
         min_frames: tracked frames needed for the alignment.
         timeout_s: without enough tracked frames by then, initialise from the accelerometer
             alone (assumes a static start, with a warning).
@@ -211,11 +217,18 @@ class TrackingConfig:
         loss_frames: consecutive visually untracked frames that count as a tracking loss.
         loss_time_s: or this long without visual tracking.
         max_imu_gap_ms: IMU gaps longer than this are reported (integration bridges them).
+        recovery_velocity_sigma: at a tracking loss the backend restarts at the IMU-propagated pose
+            with the median velocity of the last visually tracked frames, this uncertain (m/s, 1
+            sigma): the smoother's own velocity is what drifted while vision was missing.
+        recovery_keyframes: keyframes after a restart whose per-frame tracking holds the keyframe
+            state loosely (its velocity is not converged yet).
     """
 
     loss_frames: int = 10
     loss_time_s: float = 0.5
     max_imu_gap_ms: float = 20.0
+    recovery_velocity_sigma: float = 0.5
+    recovery_keyframes: int = 3
 
 
 @dataclass

@@ -14,7 +14,8 @@ As in OKVIS2 (REFERENCE.md section 5; paper Fig. 1), in three steps:
    Keyframes of the last ``skip_recent_s`` seconds / ``skip_recent_keyframes`` and those reached
    after less than ``min_travel_m`` of travel are never candidates (they are not loops).
 2. **Verification** of the best candidates: descriptor matches between the candidate's keypoints
-   with triangulated landmarks and the new keyframe's keypoints, absolute pose by 3D-2D RANSAC
+   with triangulated landmarks and the new keyframe's keypoints (mutual nearest neighbours; when
+   too few, guided by the odometry's relative pose, :meth:`LoopCloser._guided_pairs`), absolute pose by 3D-2D RANSAC
    (``cv2.solvePnPRansac``) with at least ``min_inliers`` inliers (OKVIS2: 10), and a drift bound:
    the correction the loop implies must be at most ``drift_fraction`` of the distance travelled
    between the two keyframes (plus ``drift_min_m``) and ``max_rotation_drift_deg``, since real
@@ -58,7 +59,8 @@ import numpy as np
 
 from ..errors import DataError
 from ..geometry import invert_T, rotation_angle_deg
-from ..keypoints import Keypoints, match_keypoints
+from ..keypoints import Keypoints, descriptor_similarity, match_keypoints
+from .stereo import best_matches
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +81,8 @@ DEFAULT_CONFIG: dict = {
     "min_inlier_ratio": 0.25,
     "ransac_px": 3.0,
     "ransac_iterations": 300,
+    "guided_window_px": 40.0,  # fallback matching around the odometry's projection (0: off)
+    "guided_min_similarity": 0.5,  # descriptor similarity (cosine, or 1 - hamming/bits) it needs
     "drift_fraction": 0.05,
     "drift_min_m": 0.05,
     "max_rotation_drift_deg": 15.0,
@@ -543,14 +547,32 @@ class LoopCloser:
 
     # -- verification ----------------------------------------------------------------------------
     def verify(self, query: _Keyframe, match: _Keyframe, score: float = float("nan")) -> LoopClosure | None:
-        """3D-2D RANSAC of the match's landmarks against the query's keypoints, then the drift bound."""
+        """3D-2D RANSAC of the match's landmarks against the query's keypoints, then the drift bound.
+
+        Global mutual nearest neighbours first; when they do not give a verified loop (too few
+        matches or inliers), matches guided by the odometry (:meth:`_guided_pairs`). A rejection is
+        counted once, under the furthest stage either attempt reached (matches < inliers < drift).
+        """
         c = self.config
         pairs = match_keypoints(query.keypoints, match.keypoints)
         if len(pairs):
             pairs = pairs[match.point_valid[pairs[:, 1]]]
+        loop, reason = self._verify_pairs(query, match, pairs, score)
+        if loop is None and reason != "drift" and c["guided_window_px"]:
+            loop, reason2 = self._verify_pairs(query, match, self._guided_pairs(query, match), score)
+            stages = ("matches", "inliers", "drift")
+            reason = max(reason, reason2, key=stages.index) if reason2 else reason
+        if loop is None:
+            self.stats[f"rejected_{reason}"] += 1
+        return loop
+
+    def _verify_pairs(self, query: _Keyframe, match: _Keyframe, pairs: np.ndarray, score: float
+                      ) -> tuple[LoopClosure | None, str | None]:
+        """PnP RANSAC + drift bound on ``pairs`` (M, 2) ``(query index, match index)``:
+        ``(loop, None)`` or ``(None, reason)`` with reason ``matches``, ``inliers`` or ``drift``."""
+        c = self.config
         if len(pairs) < c["min_inliers"]:
-            self.stats["rejected_matches"] += 1
-            return None
+            return None, "matches"
         obj = np.ascontiguousarray(match.points_body[pairs[:, 1]], np.float64)
         img = np.ascontiguousarray(query.keypoints.xy[pairs[:, 0]], np.float64)
         try:
@@ -562,25 +584,49 @@ class LoopCloser:
             ok, inliers = False, None
         n_in = 0 if inliers is None else len(inliers)
         if not ok or n_in < c["min_inliers"] or n_in < c["min_inlier_ratio"] * len(pairs):
-            self.stats["rejected_inliers"] += 1
-            return None
+            return None, "inliers"
         idx = inliers.reshape(-1)
         # refine on the inliers (minimal solutions are noisy)
         rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], query.K, None, rvec, tvec)
         T_match_query = self._pnp_to_relative(np.concatenate([rvec.ravel(), tvec.ravel()]), query.T_body_cam)
         cov = self._pnp_covariance(obj[idx], img[idx], query.K, rvec, tvec, query.T_body_cam, T_match_query)
         if cov is None:
-            self.stats["rejected_inliers"] += 1
-            return None
+            return None, "inliers"
         T_est = invert_T(match.T_world_body) @ query.T_world_body
         corr = invert_T(T_est) @ T_match_query
         drift_m = float(np.linalg.norm(corr[:3, 3]))
         drift_deg = float(rotation_angle_deg(corr[:3, :3]))
         travelled = query.travelled_m - match.travelled_m
         if drift_m > self._drift_bound(travelled) or drift_deg > c["max_rotation_drift_deg"]:
-            self.stats["rejected_drift"] += 1
-            return None
-        return LoopClosure(query.kf_id, match.kf_id, score, n_in, T_match_query, drift_m, drift_deg, travelled, cov, query.t_us)
+            return None, "drift"
+        return LoopClosure(query.kf_id, match.kf_id, score, n_in, T_match_query, drift_m, drift_deg, travelled, cov, query.t_us), None
+
+    def _guided_pairs(self, query: _Keyframe, match: _Keyframe) -> np.ndarray:
+        """Matches of the match keyframe's landmarks to the query's keypoints near their projection
+        with the odometry's relative pose: (M, 2) ``(query index, match index)``.
+
+        Event descriptors change with the direction of motion, so a place revisited on another
+        heading gives few global mutual nearest neighbours. Odometry drift is bounded, so each
+        landmark can only be seen near where the odometry puts it (``guided_window_px``); among those
+        candidates a weaker descriptor agreement suffices (``guided_min_similarity``). The PnP and
+        the drift bound then judge the result as for global matches.
+        """
+        c = self.config
+        valid = np.flatnonzero(match.point_valid)
+        if len(valid) == 0 or len(query.keypoints) == 0:
+            return np.zeros((0, 2), np.int64)
+        T_cq_mb = invert_T(query.T_world_body @ query.T_body_cam) @ match.T_world_body  # match body -> query camera
+        p = match.points_body[valid] @ T_cq_mb[:3, :3].T + T_cq_mb[:3, 3]
+        front = p[:, 2] > 0.05
+        valid, p = valid[front], p[front]
+        if len(valid) == 0:
+            return np.zeros((0, 2), np.int64)
+        uv = p[:, :2] / p[:, 2:3] * np.diag(query.K)[:2] + query.K[:2, 2]
+        d2 = ((uv[:, None, :] - query.keypoints.xy[None, :, :].astype(np.float64)) ** 2).sum(-1)
+        allowed = d2 <= float(c["guided_window_px"]) ** 2
+        sim = descriptor_similarity(match.keypoints.descriptors[valid], query.keypoints.descriptors)
+        m = best_matches(sim, allowed, float(c["guided_min_similarity"]))
+        return np.stack([m[:, 1], valid[m[:, 0]]], axis=1).astype(np.int64) if len(m) else np.zeros((0, 2), np.int64)
 
     @staticmethod
     def _pnp_to_relative(params: np.ndarray, T_body_cam: np.ndarray) -> np.ndarray:

@@ -33,7 +33,7 @@ re-initialised from the next stereo frame with landmarks, continuing from the IM
 from __future__ import annotations
 
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 
 import cv2
@@ -121,6 +121,8 @@ class StereoInertialOdometry:
         self.t_last_good: int | None = None
         self.lost = False
         self.tracking_losses = 0
+        self.recent_velocities: deque[np.ndarray] = deque(maxlen=10)  # of visually tracked frames (initialised)
+        self.recovery_kfs = 0                           # keyframes left with loose tracking priors
         self.n_keyframes = 0
         self.kf_odom: dict[int, np.ndarray] = {}       # keyframe id -> T_world_body (odometry) at insertion
         self.T_corr = np.eye(4)                         # loop-closure correction: world <- odometry world
@@ -141,6 +143,9 @@ class StereoInertialOdometry:
     def _predict(self, tau: int) -> NavEstimate:
         """IMU-propagated state at ``tau``."""
         if self.initialized:
+            # From the keyframe's smoothed state, not the last frame's: per-frame tracking is noisier
+            # than the smoother, and predicting from it carried that jitter into the next frame
+            # (measured on the bench preset: SuperLitE sync ATE worse on 5 of 7 sequences).
             self.stream.integrate(self.pim, self.t_last, tau)
             ns = self.pim.predict(self.kf_state.navstate(), self.kf_state.bias)
             return NavEstimate.from_navstate(ns, self.kf_state.bias)
@@ -277,8 +282,11 @@ class StereoInertialOdometry:
                 try:
                     use = spread_subset(obs.xy, cfg.backend.tracking_max_observations, cfg.keyframes.cell_px,
                                         self.cams.left.width)
+                    # after a restart the keyframe's velocity is not converged: hold it loosely
+                    kf_sigmas = (0.003, 0.01, 0.05) if self.recovery_kfs == 0 else (0.01, 0.03, cfg.tracking.recovery_velocity_sigma)
                     tr = track_frame(self.cams, cfg.backend, self.kf_state, self.pim, guess, obs, self.lmap.pos[obs.landmark],
-                                     max_reproj_px=cfg.matching.max_reproj_px, rotation_prior=rot_prior, use=use)
+                                     max_reproj_px=cfg.matching.max_reproj_px, rotation_prior=rot_prior, use=use,
+                                     kf_sigmas=kf_sigmas)
                     state = tr.state
                     keep = tr.inliers
                     obs, obs_kp = obs.subset(keep), obs_kp[keep]
@@ -315,9 +323,12 @@ class StereoInertialOdometry:
         if tracked:
             self.fail_count = 0
             self.t_last_good = tau
+            if self.initialized:
+                self.recent_velocities.append(np.asarray(state.v_world, np.float64).copy())
         else:
             self.log.warn("imu-only", f"t={tau} µs: {n_inl} 3D-2D inliers (< {cfg.ransac.min_inliers}): frame propagated with the IMU only")
-            self._visual_failure(tau)
+            if self._visual_failure(tau):
+                state = self._recover(tau, state)
         # landmark statistics (culling of landmarks that project but rarely match)
         self.lmap.n_projected[np.union1d(mL.projected, mR.projected)] += 1
         seen = np.unique(obs.landmark)
@@ -357,7 +368,8 @@ class StereoInertialOdometry:
         self.frame += 1
         state = self._predict(tau)
         self.log.warn("no-events", f"t={tau} µs: {why}: frame propagated with the IMU only")
-        self._visual_failure(tau)
+        if self._visual_failure(tau):
+            state = self._recover(tau, state)
         if self.initialized and self.kf_t is not None and (tau - self.kf_t) * 1e-6 >= self.cfg.keyframes.max_interval_s:
             # keep the smoother's IMU chain bounded: a keyframe with the IMU factor only
             self.kf_id += 1
@@ -379,8 +391,8 @@ class StereoInertialOdometry:
         ms = (time.perf_counter() - t0) * 1e3
         return FrameResult(tau, self.T_corr @ self.state.T_world_body, False, False, 0, {"tracking": ms})
 
-    def _visual_failure(self, tau: int) -> None:
-        """Count a frame without visual tracking; declare a tracking loss when they pile up."""
+    def _visual_failure(self, tau: int) -> bool:
+        """Count a frame without visual tracking; declare a tracking loss when they pile up (True)."""
         cfg = self.cfg
         self.fail_count += 1
         lost_time = (tau - self.t_last_good) * 1e-6 >= cfg.tracking.loss_time_s
@@ -391,6 +403,29 @@ class StereoInertialOdometry:
                                            "tracking; map dropped, re-initialising from stereo")
             self.lmap.retire_all()
             self.kfsel.clear()
+            return True
+        return False
+
+    def _recover(self, tau: int, state: NavEstimate) -> NavEstimate:
+        """Restart the backend at a tracking loss: the IMU-propagated pose, the median velocity of the
+        last visually tracked frames (loosely), the last keyframe's bias.
+
+        Without vision the smoother's velocity is only as good as the IMU integration since the last
+        tracked frame, and a velocity error grows the position error linearly for as long as tracking
+        stays lost (measured on the bench's handheld sequences: metres within seconds). The velocity
+        before the loss is a better guess; the stereo map built at the next keyframe and the IMU
+        factors after it re-estimate it.
+        """
+        tc = self.cfg.tracking
+        v = np.median(np.stack(self.recent_velocities), axis=0) if self.recent_velocities else np.zeros(3)
+        state = NavEstimate(state.T_world_body, v, self.kf_state.bias)
+        self.kf_id += 1
+        self._restart_smoother(self.kf_id, tau, state, sigma_vel=tc.recovery_velocity_sigma)
+        self.pim = new_preintegration(self.params, state.bias)
+        self.kf_t = tau
+        self.recovery_kfs = tc.recovery_keyframes
+        self.recent_velocities.clear()
+        return state
 
     def _poll_loop_closer(self) -> None:
         """Apply a published loop-closure correction (never waits)."""
@@ -476,6 +511,7 @@ class StereoInertialOdometry:
                 est = self.kf_state
             self.kf_state = est
             self.pim = new_preintegration(self.params, est.bias)
+            self.recovery_kfs = max(0, self.recovery_kfs - 1)
             timings["backend"] = (time.perf_counter() - tb) * 1e3
         self.kf_t = tau
         self.kf_keypoints = kpL
@@ -490,10 +526,11 @@ class StereoInertialOdometry:
             self._to_loop_closer(kf, tau, kpL, obs, obs_kp, new_ids, rowsL)
         return True
 
-    def _restart_smoother(self, kf: int, tau: int, state: NavEstimate) -> None:
+    def _restart_smoother(self, kf: int, tau: int, state: NavEstimate, sigma_vel: float | None = None) -> None:
         b = self.cfg.backend
+        sigma_vel = max(b.prior_velocity_m_s, 0.3) if sigma_vel is None else sigma_vel
         self.smoother.initialize(kf, tau * 1e-6, state, sigma_rollpitch_rad=np.radians(b.prior_rollpitch_deg),
-                                 sigma_yaw_rad=np.radians(1.0), sigma_pos_m=0.01, sigma_vel=max(b.prior_velocity_m_s, 0.3),
+                                 sigma_yaw_rad=np.radians(1.0), sigma_pos_m=0.01, sigma_vel=sigma_vel,
                                  sigma_acc_bias=b.prior_acc_bias, sigma_gyro_bias=b.prior_gyro_bias)
         self.kf_state = state
 
