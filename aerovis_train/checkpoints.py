@@ -17,6 +17,7 @@ import torch
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
 from aerovis_slam.errors import DataError
+from aerovis_slam.fileio import atomic_write
 
 from .models import build_model
 
@@ -30,22 +31,14 @@ class AtomicCheckpointIO(TorchCheckpointIO):
     truncated ``best.ckpt`` or ``last.ckpt`` (Lightning writes the final path directly)."""
 
     def save_checkpoint(self, checkpoint, path, storage_options=None) -> None:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".partial")
-        super().save_checkpoint(checkpoint, tmp, storage_options)
-        os.replace(tmp, path)
+        atomic_write(path, lambda tmp: super(AtomicCheckpointIO, self).save_checkpoint(checkpoint, tmp, storage_options))
 
 
 def save_slim(model_cfg: dict, state_dict: dict, out: str | os.PathLike, meta: dict | None = None) -> Path:
     """Write weights + model config (float32, no optimiser state) atomically; returns the path."""
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".partial")
-    torch.save({"format": SLIM_FORMAT, "model_cfg": model_cfg, "state_dict": {k: v.detach().cpu() for k, v in state_dict.items()},
-                "meta": meta or {}}, tmp)
-    os.replace(tmp, out)
-    return out
+    blob = {"format": SLIM_FORMAT, "model_cfg": model_cfg, "state_dict": {k: v.detach().cpu() for k, v in state_dict.items()},
+            "meta": meta or {}}
+    return atomic_write(out, lambda tmp: torch.save(blob, tmp))
 
 
 def lightning_model_state(ckpt: dict) -> dict:

@@ -16,7 +16,6 @@ complete), a summary line per sequence is printed, and ``OUT_DIR/summary.json`` 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -25,15 +24,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ..errors import DataError
-
-
-def _prepare_out_dir(out_dir: Path) -> None:
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise DataError(out_dir, f"cannot create output folder ({exc.strerror})") from None
-    if not os.access(out_dir, os.W_OK | os.X_OK):
-        raise DataError(out_dir, "output folder is not writable")
+from ..fileio import atomic_write_json, prepare_out_dir
 
 
 def run_preset(name: str, out_dir: str | os.PathLike, *, seed: int = 0, duration: float | None = None,
@@ -64,7 +55,7 @@ def run_preset(name: str, out_dir: str | os.PathLike, *, seed: int = 0, duration
         for s in specs:
             s.user_textures = [str(Path(t).resolve()) for t in textures]
     out = Path(out_dir)
-    _prepare_out_dir(out)
+    prepare_out_dir(out)
     t0 = time.perf_counter()
     rows = []
     bar = tqdm(specs, desc=f"aerovis-sim {name}", unit="seq", disable=not progress)
@@ -81,9 +72,7 @@ def run_preset(name: str, out_dir: str | os.PathLike, *, seed: int = 0, duration
                "total_events": sum(r["events"] for r in rows),
                "total_duration_s": sum(r["duration_s"] for r in rows),
                "wall_s": round(time.perf_counter() - t0, 2)}
-    tmp = out / "summary.json.partial"
-    tmp.write_text(json.dumps(summary, indent=2))
-    os.replace(tmp, out / "summary.json")
+    atomic_write_json(out / "summary.json", summary)
     return summary
 
 
@@ -142,7 +131,7 @@ def run_video(images_dir: str | os.PathLike, out_dir: str | os.PathLike, *, fps:
         poses = PoseSamples(np.round((g[:, 0] - t0_s) * 1e6).astype(np.int64), g[:, 1:])
     events = video_to_events(frames, t_us, EventConfig(threshold=threshold), seed=seed)
     out = Path(out_dir)
-    _prepare_out_dir(out)
+    prepare_out_dir(out)
     h, w = frames.shape[1:]
     path = out / f"{src.name}.h5"
     with SequenceWriter(path, sensor_sizes={"cam0": (w, h)}, meta={"generator": "aerovis-sim video", "source": str(src),

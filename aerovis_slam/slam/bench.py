@@ -29,7 +29,8 @@ import numpy as np
 from ..errors import DataError
 from ..measurements import PoseSamples
 from .report import compute_metrics, plot_trajectory, write_metrics
-from .trajectory import atomic_write_text, write_tum
+from ..fileio import atomic_write_text, prepare_out_dir
+from .trajectory import write_tum
 
 TRAJ_FILE = "traj.txt"
 PARTIAL_TRAJ_FILE = "traj.partial.txt"
@@ -105,13 +106,7 @@ def run_sequence(sequence: str | os.PathLike, detector, config, out_dir: str | o
         The metrics dict (as written to ``metrics.json``), with ``out_dir`` and ``trajectory_file``.
     """
     sequence = Path(sequence)
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise DataError(out, f"cannot create output folder ({exc.strerror})") from None
-    if not os.access(out, os.W_OK | os.X_OK):
-        raise DataError(out, "output folder is not writable")
+    out = prepare_out_dir(out_dir)
     gt = _load_gt(sequence)  # fails early (DataError) on a missing or foreign file
     mode = mode or getattr(config, "mode", "sync")
     closer = make_loop_closer(detector, config) if loop else None

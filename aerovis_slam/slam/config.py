@@ -194,12 +194,15 @@ class InitConfig:
     Attributes:
         window_s: vision-only tracking this long before the visual-inertial alignment. Gravity is seen
             through ``g t²/2`` against the visual positions' noise: with 1 cm of noise a 0.3 s window
-            leaves about 6 deg of tilt and 0.14 m/s of velocity error, 1 s about 0.6 deg and 0.04 m/s
+            leaves about 3.5 deg of tilt and 0.09 m/s of velocity error, 1 s about 0.2 deg and 0.02 m/s
             (tests/test_slam_core.py). But the vision-only tracking before it drifts (keypoints lag
             the motion as it starts), and on the bench preset 0.3 s gave the lower ATE (SuperLitE,
             sync: slider_wall 2.02 % vs 2.15 %, handheld_office 1.46 % vs 2.71 % at 0.8 s); the
             smoother refines gravity and velocity afterwards.
         min_frames: tracked frames needed for the alignment.
+        max_tilt_sigma_deg, max_velocity_sigma: an alignment is accepted only when its own
+            least-squares uncertainty (:class:`~aerovis_slam.slam.imu.Alignment`) is below these;
+            the smoother starts with priors no tighter than it.
         timeout_s: without enough tracked frames by then, initialise from the accelerometer
             alone (assumes a static start, with a warning).
     """
@@ -207,6 +210,8 @@ class InitConfig:
     window_s: float = 0.3
     min_frames: int = 8
     timeout_s: float = 1.5
+    max_tilt_sigma_deg: float = 6.0
+    max_velocity_sigma: float = 0.3
 
 
 @dataclass

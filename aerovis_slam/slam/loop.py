@@ -58,6 +58,7 @@ import cv2
 import numpy as np
 
 from ..errors import DataError
+from ..fileio import atomic_write_bytes
 from ..geometry import invert_T, rotation_angle_deg
 from ..keypoints import Keypoints, descriptor_similarity, match_keypoints
 from .stereo import best_matches
@@ -187,11 +188,7 @@ def save_vocabulary(path: str | os.PathLike, name: str, vocabulary: np.ndarray, 
     buf = io.BytesIO()
     # float16 halves the file; k-means centres need no more precision than that
     np.savez_compressed(buf, meta=np.array(json.dumps(metas, sort_keys=True)), **{k: v.astype(np.float16) for k, v in vocabs.items()})
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.partial")
-    tmp.write_bytes(buf.getvalue())
-    os.replace(tmp, path)
-    return path
+    return atomic_write_bytes(path, buf.getvalue())
 
 
 def build_vocabulary(sequences: Iterable[str | os.PathLike], detector, *, frames_per_sequence: int = 8,

@@ -563,11 +563,14 @@ class StereoInertialOdometry:
             try:
                 al = align_visual_inertial(t, T, self.stream, self.params)
                 # a consistent fit: gravity of the right size, small position residuals, a plausible gyro bias
-                if abs(al.gravity_norm - 9.81) < 1.0 and al.residual_m < 0.05 and np.linalg.norm(al.gyro_bias) < 0.05:
+                # and an uncertainty the smoother can start from (its own covariance)
+                if (abs(al.gravity_norm - 9.81) < 1.0 and al.residual_m < 0.05 and np.linalg.norm(al.gyro_bias) < 0.05
+                        and al.tilt_sigma_deg <= ic.max_tilt_sigma_deg and al.velocity_sigma <= ic.max_velocity_sigma):
                     aligned = al
                 else:
                     self.log.warn("init-gravity", f"t={tau} µs: visual-inertial alignment rejected (|g| = {al.gravity_norm:.2f} m/s², "
-                                                  f"residual {al.residual_m * 100:.1f} cm, |b_g| = {np.linalg.norm(al.gyro_bias):.3f} rad/s); "
+                                                  f"residual {al.residual_m * 100:.1f} cm, |b_g| = {np.linalg.norm(al.gyro_bias):.3f} rad/s, "
+                                                  f"tilt sigma {al.tilt_sigma_deg:.1f} deg, velocity sigma {al.velocity_sigma:.2f} m/s); "
                                                   "collecting more frames")
                     self.init_frames = frames[len(frames) // 2:]
             except (ValueError, np.linalg.LinAlgError) as exc:
@@ -576,7 +579,8 @@ class StereoInertialOdometry:
             R_wv = aligned.R_world_vision
             v_w = R_wv @ aligned.velocities[-1]
             bias = gtsam.imuBias.ConstantBias(np.zeros(3), aligned.gyro_bias)
-            self._start(tau, R_wv, v_w, bias, kpL, kpR, from_vision=True)
+            self._start(tau, R_wv, v_w, bias, kpL, kpR, from_vision=True,
+                        sigmas=(aligned.tilt_sigma_deg, aligned.velocity_sigma))
         elif (tau - self.t_first) * 1e-6 >= ic.timeout_s:
             acc = self.stream.mean_acc(self.t_first, self.t_first + 200_000)
             R_wv = gravity_rotation_from_acc(acc)
@@ -585,8 +589,12 @@ class StereoInertialOdometry:
                                          f"{ic.timeout_s} s; gravity from the accelerometer (assumes a static start)")
             self._start(tau, R_wv, v_w, gtsam.imuBias.ConstantBias(), kpL, kpR, from_vision=False)
 
-    def _start(self, tau, R_wv, v_w, bias, kpL, kpR, *, from_vision: bool) -> None:
-        """Rotate the vision frame into the gravity-aligned world and start the smoother at ``tau``."""
+    def _start(self, tau, R_wv, v_w, bias, kpL, kpR, *, from_vision: bool, sigmas=(0.0, 0.0)) -> None:
+        """Rotate the vision frame into the gravity-aligned world and start the smoother at ``tau``.
+
+        ``sigmas``: the alignment's own (tilt deg, velocity m/s) uncertainty; the smoother's priors
+        are never tighter than it (a prior tighter than the estimate would pin its error).
+        """
         Rh = np.eye(4)
         Rh[:3, :3] = R_wv
         n = len(self.lmap)
@@ -596,9 +604,9 @@ class StereoInertialOdometry:
         self.rotate_outputs = Rh
         b = self.cfg.backend
         self.kf_id += 1
-        sig_rp = np.radians(b.prior_rollpitch_deg if from_vision else 5.0)
+        sig_rp = np.radians(max(b.prior_rollpitch_deg, sigmas[0]) if from_vision else 5.0)
         self.smoother.initialize(self.kf_id, tau * 1e-6, self.state, sigma_rollpitch_rad=sig_rp,
-                                 sigma_vel=b.prior_velocity_m_s if from_vision else 0.5,
+                                 sigma_vel=max(b.prior_velocity_m_s, sigmas[1]) if from_vision else 0.5,
                                  sigma_acc_bias=b.prior_acc_bias, sigma_gyro_bias=b.prior_gyro_bias)
         self.kf_state = self.state
         self.pim = new_preintegration(self.params, bias)

@@ -21,14 +21,14 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import DataError
 from ..measurements import PoseSamples
-from .trajectory import ate, atomic_write_text, json_ready, rpe
+from ..fileio import atomic_write, atomic_write_text
+from .trajectory import ate, json_ready, rpe
 
 METRICS_VERSION = 1
 
@@ -201,14 +201,4 @@ def plot_trajectory(path: str | os.PathLike, gt: PoseSamples | None, ate_result:
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, format="png")
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return atomic_write(path, lambda tmp: fig.savefig(tmp, format="png"))

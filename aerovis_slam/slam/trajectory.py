@@ -34,12 +34,12 @@ from __future__ import annotations
 import logging
 import math
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import DataError
+from ..fileio import atomic_write_text
 from ..geometry import interpolate_poses
 from ..measurements import PoseSamples
 
@@ -133,22 +133,6 @@ def read_tum_comments(path: str | os.PathLike) -> list[str]:
 def is_partial(path: str | os.PathLike) -> bool:
     """True when the TUM file's header says it holds a partial trajectory (see :func:`write_tum`)."""
     return any(PARTIAL_MARKER in c for c in read_tum_comments(path))
-
-
-def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
-    """Write ``text`` to ``path`` atomically: a temporary file beside it, then ``os.replace``."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
-
 
 def format_tum(t_us: np.ndarray, pose7: np.ndarray, comments: list[str] | None = None) -> str:
     """TUM text: ``t`` (N,) int64 µs, ``pose7`` (N, 7); times with exact µs, positions to 0.1 µm."""

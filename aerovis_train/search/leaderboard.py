@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from aerovis_slam.errors import DataError
+from aerovis_slam.fileio import atomic_write
 
 from .metrics import METRICS_FILE, load_metrics, write_json, write_text
 
@@ -194,12 +195,10 @@ def plot_pareto(rows: list[dict], path: str | os.PathLike, title: str = "") -> P
     ax.legend(loc="lower right", fontsize=8)
     ax.set_title(title or f"{len(pts)} jobs; Pareto front marked", fontsize=10)
     fig.tight_layout()
-    path = Path(path)
-    tmp = path.with_name(path.stem + ".partial.png")
-    fig.savefig(tmp)
-    plt.close(fig)
-    os.replace(tmp, path)
-    return path
+    try:
+        return atomic_write(path, lambda tmp: fig.savefig(tmp, format="png"))
+    finally:
+        plt.close(fig)
 
 
 def search_command(root: str | os.PathLike) -> str | None:

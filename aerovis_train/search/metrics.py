@@ -27,6 +27,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from aerovis_slam.fileio import atomic_write_json, atomic_write_text
+
 METRICS_FORMAT = "aerovis-metrics/1"
 METRICS_FILE = "metrics.json"
 LATENCY_HEIGHT, LATENCY_WIDTH, LATENCY_BATCH = 240, 424, 2
@@ -34,22 +36,12 @@ LATENCY_HEIGHT, LATENCY_WIDTH, LATENCY_BATCH = 240, 424, 2
 
 def write_json(path: str | os.PathLike, data: Any) -> Path:
     """Write JSON atomically (temporary name, then ``os.replace``): readers never see half a file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text(json.dumps(data, indent=2, default=_json_default) + "\n")
-    os.replace(tmp, path)
-    return path
+    return atomic_write_json(path, data, default=_json_default)
 
 
 def write_text(path: str | os.PathLike, text: str) -> Path:
     """Write text atomically (temporary name, then ``os.replace``)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-    return path
+    return atomic_write_text(path, text)
 
 
 def _json_default(obj):

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from aerovis_slam.errors import DataError
+from aerovis_slam.fileio import atomic_write
 
 from .leaderboard import markdown_table as leaderboard_table
 from .leaderboard import summarize_dir
@@ -301,10 +302,7 @@ def write_results(out: str | os.PathLike, compare: str | os.PathLike | None = No
         png = None
         if summary["outputs"].get("png"):
             name = f"{out.stem}_search{i + 1}_pareto.png"
-            tmp = out.with_name(name + ".partial")
-            out.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(summary["outputs"]["png"], tmp)
-            os.replace(tmp, out.with_name(name))
+            atomic_write(out.with_name(name), lambda tmp, src=summary["outputs"]["png"]: shutil.copyfile(src, tmp))
             png = name
         parts.append(section_search(summary, png, top))
         done.append(summary["outputs"]["json"])

@@ -38,6 +38,7 @@ from aerovis_slam.bundle import (
     file_sha256,
 )
 from aerovis_slam.errors import DataError
+from aerovis_slam.fileio import atomic_write_json
 from aerovis_slam.keypoints import extract_keypoints
 from aerovis_slam.mcts import CHANNEL_ORDER, channel_names
 
@@ -127,9 +128,7 @@ def _ort_session(path: Path):
 
 
 def _write_json(path: Path, obj: dict) -> None:
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text(json.dumps(obj, indent=1) + "\n")
-    os.replace(tmp, path)
+    atomic_write_json(path, obj, indent=1)
 
 
 def export_bundle(
