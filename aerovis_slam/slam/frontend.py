@@ -154,22 +154,45 @@ def match_to_map(lmap: LandmarkMap, ids: np.ndarray, T_world_body_pred: np.ndarr
     ids_v, uv_v = ids[vis], uv[vis]
     if len(ids_v) == 0:
         return MapMatches()
-    a = uv_v.astype(np.float32)
-    b = kps.xy.astype(np.float32)
+    m = window_matches(uv_v, kps.xy, window_px, lambda i, j: pair_similarity(lmap.desc, kps.descriptors, ids_v[i], j),
+                       min_similarity, ratio)
+    return MapMatches(ids_v[m[:, 0]], m[:, 1], ids_v)
+
+
+def window_matches(uv: np.ndarray, xy: np.ndarray, window_px: float, similarity, min_similarity: float,
+                   ratio: float = 0.0) -> np.ndarray:
+    """Mutual best matches between predicted pixels ``uv`` (M, 2) and keypoints ``xy`` (N, 2), each
+    pair within ``window_px``: (K, 2) int64 ``(row of uv, row of xy)``.
+
+    ``similarity(i, j)`` gives the (P,) descriptor similarity of the pairs ``(i[p], j[p])`` (higher
+    is better, e.g. :func:`~aerovis_slam.keypoints.pair_similarity`); it is asked only for pairs
+    inside the window. ``min_similarity`` and ``ratio`` as in :func:`best_matches`.
+    """
+    a = np.asarray(uv, np.float32)
+    b = np.asarray(xy, np.float32)
     d2 = (a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2.0 * (a @ b.T)  # one BLAS product
     allowed = d2 <= window_px ** 2
     rows = np.flatnonzero(allowed.any(1))
     if len(rows) == 0:
-        return MapMatches(projected=ids_v)
+        return np.zeros((0, 2), np.int64)
     allowed = allowed[rows]
     r, c = np.nonzero(allowed)
     sim = np.full(allowed.shape, -np.inf, np.float32)
-    sim[r, c] = pair_similarity(lmap.desc, kps.descriptors, ids_v[rows[r]], c)
+    sim[r, c] = similarity(rows[r], c)
     m = best_matches(sim, allowed, min_similarity, ratio)
-    return MapMatches(ids_v[rows[m[:, 0]]], m[:, 1].astype(np.int64), ids_v)
+    return np.stack([rows[m[:, 0]], m[:, 1]], axis=1).astype(np.int64)
 
 
-def edge_shapes(img: np.ndarray, xy: np.ndarray, *, window: int = 7, max_ratio: float = 100.0) -> np.ndarray:
+def structure_tensor(img: np.ndarray, window: int = 7) -> np.ndarray:
+    """Local structure tensor of an image: (3, H, W) float32 ``(sxx, sxy, syy)``, Sobel gradients
+    averaged over ``window`` x ``window`` pixels (computed once per frame, sampled by :func:`edge_shapes`)."""
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
+    k = (int(window), int(window))
+    return np.stack([cv2.boxFilter(gx * gx, -1, k), cv2.boxFilter(gx * gy, -1, k), cv2.boxFilter(gy * gy, -1, k)])
+
+
+def edge_shapes(tensor: np.ndarray, xy: np.ndarray, *, max_ratio: float = 100.0) -> np.ndarray:
     """Covariance shapes (N, 2, 2) of keypoint positions from the local structure tensor.
 
     An event keypoint on an edge is well localised across the edge but can slide along it between
@@ -180,19 +203,15 @@ def edge_shapes(img: np.ndarray, xy: np.ndarray, *, window: int = 7, max_ratio: 
     variance along it by the edge's anisotropy; corners stay isotropic.
 
     Args:
-        img: (H, W) float32 image (e.g. the blurred channel mean of the MCTS).
-        xy: (N, 2) pixels. window: tensor averaging window. max_ratio: variance ratio cap.
+        tensor: (3, H, W) :func:`structure_tensor` of the image the keypoints come from (e.g. the
+            blurred channel mean of the MCTS).
+        xy: (N, 2) pixels. max_ratio: variance ratio cap.
     """
     n = len(xy)
     if n == 0:
         return np.zeros((0, 2, 2))
-    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)
-    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
-    k = (int(window), int(window))
-    sxx = cv2.boxFilter(gx * gx, -1, k)
-    sxy = cv2.boxFilter(gx * gy, -1, k)
-    syy = cv2.boxFilter(gy * gy, -1, k)
-    H, W = img.shape
+    sxx, sxy, syy = tensor
+    H, W = sxx.shape
     u = np.clip(np.rint(xy[:, 0]).astype(np.int64), 0, W - 1)
     v = np.clip(np.rint(xy[:, 1]).astype(np.int64), 0, H - 1)
     S = np.stack([np.stack([sxx[v, u], sxy[v, u]], -1), np.stack([sxy[v, u], syy[v, u]], -1)], -2).astype(np.float64)

@@ -183,10 +183,11 @@ class Alignment:
     velocity_sigma: float = float("nan")
 
 
-def _pair_preintegrations(stream: ImuStream, params, t_us, bias_gyro):
+def _preintegrations(stream: ImuStream, params, starts, ends, bias_gyro):
+    """One preintegration per span ``starts[i] -> ends[i]`` (µs) with the gyro bias ``bias_gyro``."""
     bias = gtsam.imuBias.ConstantBias(np.zeros(3), np.asarray(bias_gyro, np.float64))
     pims = []
-    for a, b in zip(t_us[:-1], t_us[1:]):
+    for a, b in zip(starts, ends):
         pim = new_preintegration(params, bias)
         stream.integrate(pim, int(a), int(b))
         pims.append(pim)
@@ -226,7 +227,7 @@ def align_visual_inertial(t_us: np.ndarray, T_vision_body: np.ndarray, stream: I
     for _ in range(2):
         def residuals(b):
             res = []
-            for k, pim in enumerate(_pair_preintegrations(stream, params, t_us, b)):
+            for k, pim in enumerate(_preintegrations(stream, params, t_us[:-1], t_us[1:], b)):
                 dR = pim.deltaRij().matrix()
                 res.append(gtsam.Rot3.Logmap(gtsam.Rot3((R[k] @ dR).T @ R[k + 1])))
             return np.concatenate(res)
@@ -244,12 +245,7 @@ def align_visual_inertial(t_us: np.ndarray, T_vision_body: np.ndarray, stream: I
     # m/s off on a slow handheld start); over the whole window the same noise costs a few cm/s.
     # p_0 is taken as exact: the runtime's vision frame is the first tracked pose. (Estimating it
     # too was measured worse on the bench preset: SuperLitE ATE up on 5 of 7 sequences.)
-    bias = gtsam.imuBias.ConstantBias(np.zeros(3), bg)
-    pims = []
-    for b in t_us[1:]:
-        pim = new_preintegration(params, bias)
-        stream.integrate(pim, int(t_us[0]), int(b))
-        pims.append(pim)
+    pims = _preintegrations(stream, params, [t_us[0]] * (n - 1), t_us[1:], bg)
     dts = np.array([pim.deltaTij() for pim in pims])
     I3 = np.eye(3)
     A = np.concatenate([np.hstack([I3 * dt, 0.5 * I3 * dt * dt]) for dt in dts])  # (3(n-1), 6)

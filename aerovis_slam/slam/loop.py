@@ -60,8 +60,8 @@ import numpy as np
 from ..errors import DataError
 from ..fileio import atomic_write_bytes
 from ..geometry import invert_T, rotation_angle_deg
-from ..keypoints import Keypoints, descriptor_similarity, match_keypoints
-from .stereo import best_matches
+from ..keypoints import Keypoints, match_keypoints, pair_similarity
+from .frontend import window_matches
 
 log = logging.getLogger(__name__)
 
@@ -619,11 +619,10 @@ class LoopCloser:
         if len(valid) == 0:
             return np.zeros((0, 2), np.int64)
         uv = p[:, :2] / p[:, 2:3] * np.diag(query.K)[:2] + query.K[:2, 2]
-        d2 = ((uv[:, None, :] - query.keypoints.xy[None, :, :].astype(np.float64)) ** 2).sum(-1)
-        allowed = d2 <= float(c["guided_window_px"]) ** 2
-        sim = descriptor_similarity(match.keypoints.descriptors[valid], query.keypoints.descriptors)
-        m = best_matches(sim, allowed, float(c["guided_min_similarity"]))
-        return np.stack([m[:, 1], valid[m[:, 0]]], axis=1).astype(np.int64) if len(m) else np.zeros((0, 2), np.int64)
+        desc_m, desc_q = match.keypoints.descriptors, query.keypoints.descriptors
+        m = window_matches(uv, query.keypoints.xy, float(c["guided_window_px"]),
+                           lambda i, j: pair_similarity(desc_m, desc_q, valid[i], j), float(c["guided_min_similarity"]))
+        return np.stack([m[:, 1], valid[m[:, 0]]], axis=1)
 
     @staticmethod
     def _pnp_to_relative(params: np.ndarray, T_body_cam: np.ndarray) -> np.ndarray:

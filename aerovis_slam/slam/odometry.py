@@ -46,7 +46,7 @@ from ..keypoints import Keypoints, match_keypoints
 from .backend import KeyframeSmoother, NavEstimate, Observations, track_frame
 from .cameras import StereoCameras
 from .config import SlamConfig
-from .frontend import KeyframeSelector, LandmarkMap, edge_shapes, match_to_map, spread_subset
+from .frontend import KeyframeSelector, LandmarkMap, edge_shapes, match_to_map, spread_subset, structure_tensor
 from .imu import ImuStream, align_visual_inertial, gravity_rotation_from_acc, new_preintegration, preintegration_params
 from .ransac import bearings, pnp_ransac, position_given_rotation, relative_pose_ransac, rotation_ransac
 from .stereo import match_stereo
@@ -262,11 +262,13 @@ class StereoInertialOdometry:
 
         # -- state estimate ---------------------------------------------------------------------
         t2 = time.perf_counter()
-        # images of the frame (blurred channel means): observation shapes now, stereo search at keyframes
+        # images of the frame (blurred channel means) and their structure tensors: observation shapes
+        # now and at a keyframe, the images for the stereo search at a keyframe
         images = tuple(cv2.GaussianBlur(np.ascontiguousarray(b.mean(0)), (0, 0), 1.0) for b in batch[:2])
+        tensors = tuple(structure_tensor(im) for im in images)
         ratio = cfg.matching.edge_max_ratio
-        shL = edge_shapes(images[0], kpL.xy[mL.keypoint[inlL]], max_ratio=ratio)
-        shR = edge_shapes(images[1], kpR.xy[mR.keypoint[inlR]], max_ratio=ratio)
+        shL = edge_shapes(tensors[0], kpL.xy[mL.keypoint[inlL]], max_ratio=ratio)
+        shR = edge_shapes(tensors[1], kpR.xy[mR.keypoint[inlR]], max_ratio=ratio)
         obs = Observations(np.concatenate([mL.landmark[inlL], mR.landmark[inlR]]),
                            np.concatenate([np.zeros(int(inlL.sum()), np.int8), np.ones(int(inlR.sum()), np.int8)]),
                            np.concatenate([kpL.xy[mL.keypoint[inlL]], kpR.xy[mR.keypoint[inlR]]]).astype(np.float64),
@@ -283,10 +285,9 @@ class StereoInertialOdometry:
                     use = spread_subset(obs.xy, cfg.backend.tracking_max_observations, cfg.keyframes.cell_px,
                                         self.cams.left.width)
                     # after a restart the keyframe's velocity is not converged: hold it loosely
-                    kf_sigmas = (0.003, 0.01, 0.05) if self.recovery_kfs == 0 else (0.01, 0.03, cfg.tracking.recovery_velocity_sigma)
+                    loose = {} if self.recovery_kfs == 0 else {"kf_sigmas": (0.01, 0.03, cfg.tracking.recovery_velocity_sigma)}
                     tr = track_frame(self.cams, cfg.backend, self.kf_state, self.pim, guess, obs, self.lmap.pos[obs.landmark],
-                                     max_reproj_px=cfg.matching.max_reproj_px, rotation_prior=rot_prior, use=use,
-                                     kf_sigmas=kf_sigmas)
+                                     max_reproj_px=cfg.matching.max_reproj_px, rotation_prior=rot_prior, use=use, **loose)
                     state = tr.state
                     keep = tr.inliers
                     obs, obs_kp = obs.subset(keep), obs_kp[keep]
@@ -340,7 +341,7 @@ class StereoInertialOdometry:
         t3 = time.perf_counter()
         is_kf = self._keyframe_needed(tau, kpL, obs, obs_kp, tracked)
         if is_kf:
-            is_kf = self._make_keyframe(tau, kpL, kpR, state, obs, obs_kp, timings, images)
+            is_kf = self._make_keyframe(tau, kpL, kpR, state, obs, obs_kp, timings, images, tensors)
             if is_kf and self.initialized:
                 state = self.kf_state
         timings.setdefault("backend", 0.0)
@@ -373,14 +374,7 @@ class StereoInertialOdometry:
         if self.initialized and self.kf_t is not None and (tau - self.kf_t) * 1e-6 >= self.cfg.keyframes.max_interval_s:
             # keep the smoother's IMU chain bounded: a keyframe with the IMU factor only
             self.kf_id += 1
-            try:
-                self.smoother.add_keyframe(self.kf_id, self.pim, state, Observations.empty(), {})
-                _, state = self.smoother.latest
-            except RuntimeError as exc:
-                self.log.warn("backend-reset", f"t={tau} µs: smoother update failed ({exc}); backend restarted")
-                self._restart_smoother(self.kf_id, tau, state)
-            self.kf_state = state
-            self.pim = new_preintegration(self.params, state.bias)
+            state = self._smoother_keyframe(self.kf_id, tau, state, Observations.empty(), {}, update_landmarks=False)
             self.kf_t = tau
         self.state = state
         self.t_last = tau
@@ -456,7 +450,7 @@ class StereoInertialOdometry:
         overlap = self.kfsel.best_overlap(kpL.xy[obs_kp[left]], obs.landmark[left], self.cams.left.width)
         return overlap < kc.overlap_threshold
 
-    def _make_keyframe(self, tau, kpL, kpR, state, obs: Observations, obs_kp, timings, images) -> bool:
+    def _make_keyframe(self, tau, kpL, kpR, state, obs: Observations, obs_kp, timings, images, tensors) -> bool:
         cfg = self.cfg
         mc = cfg.matching
         # new landmarks: left keypoints without a landmark, found in the right view along the epipolar line
@@ -494,23 +488,13 @@ class StereoInertialOdometry:
         new_obs = Observations(np.concatenate([new_ids, new_ids]),
                                np.concatenate([np.zeros(len(new_ids), np.int8), np.ones(len(new_ids), np.int8)]),
                                np.concatenate([kpL.xy[rowsL], xyR]).astype(np.float64),
-                               np.concatenate([edge_shapes(images[0], kpL.xy[rowsL], max_ratio=ratio),
-                                               edge_shapes(images[1], xyR, max_ratio=ratio)]))
+                               np.concatenate([edge_shapes(tensors[0], kpL.xy[rowsL], max_ratio=ratio),
+                                               edge_shapes(tensors[1], xyR, max_ratio=ratio)]))
         all_obs = Observations.concatenate([obs, new_obs])
         if self.initialized:
             tb = time.perf_counter()
             positions = {int(j): self.lmap.pos[j] for j in np.unique(all_obs.landmark)}
-            try:
-                self.smoother.add_keyframe(kf, self.pim, state, all_obs, positions)
-                _, est = self.smoother.latest
-                for j, p in self.smoother.landmark_estimates().items():
-                    self.lmap.pos[j] = p
-            except RuntimeError as exc:
-                self.log.warn("backend-reset", f"t={tau} µs: smoother update failed ({exc}); backend restarted at the tracked state")
-                self._restart_smoother(kf, tau, state)
-                est = self.kf_state
-            self.kf_state = est
-            self.pim = new_preintegration(self.params, est.bias)
+            self._smoother_keyframe(kf, tau, state, all_obs, positions)
             self.recovery_kfs = max(0, self.recovery_kfs - 1)
             timings["backend"] = (time.perf_counter() - tb) * 1e3
         self.kf_t = tau
@@ -525,6 +509,25 @@ class StereoInertialOdometry:
         if self.loop_closer is not None and self.initialized:
             self._to_loop_closer(kf, tau, kpL, obs, obs_kp, new_ids, rowsL)
         return True
+
+    def _smoother_keyframe(self, kf: int, tau: int, state: NavEstimate, obs: Observations, positions: dict,
+                           *, update_landmarks: bool = True) -> NavEstimate:
+        """Add keyframe ``kf`` (initial state ``state``) to the smoother, restarting it at ``state``
+        when gtsam fails; its estimate becomes ``kf_state`` and starts a fresh preintegration.
+        ``update_landmarks``: copy the window's landmark estimates back into the map."""
+        try:
+            self.smoother.add_keyframe(kf, self.pim, state, obs, positions)
+            _, est = self.smoother.latest
+            if update_landmarks:
+                for j, p in self.smoother.landmark_estimates().items():
+                    self.lmap.pos[j] = p
+        except RuntimeError as exc:
+            self.log.warn("backend-reset", f"t={tau} µs: smoother update failed ({exc}); backend restarted at the tracked state")
+            self._restart_smoother(kf, tau, state)
+            est = state
+        self.kf_state = est
+        self.pim = new_preintegration(self.params, est.bias)
+        return est
 
     def _restart_smoother(self, kf: int, tau: int, state: NavEstimate, sigma_vel: float | None = None) -> None:
         b = self.cfg.backend
