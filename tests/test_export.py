@@ -115,8 +115,12 @@ def test_bundle_detector_matches_torch_detector(fp32_bundle, frames):
         np.testing.assert_allclose(s[0], s_ref, atol=1e-5)
         np.testing.assert_allclose(g[0], g_ref, atol=1e-5)
         kr, kb = ref(m, top_k=32), det(m, top_k=32)
-        np.testing.assert_array_equal(kb.xy, kr.xy)
-        np.testing.assert_allclose(kb.descriptors, kr.descriptors, atol=1e-5)
+        # softmax probabilities agree in relative terms (~1e-5 observed, tiny peaks included), so the
+        # 3x3 sub-pixel centroids, whose offsets move by at most 2 r = 2 px times the relative weight
+        # error, agree to 2e-4 px; that moves the bilinear descriptor weights by 2e-4 / 8 per unit step
+        np.testing.assert_allclose(kb.scores, kr.scores, rtol=1e-4)
+        np.testing.assert_allclose(kb.xy, kr.xy, atol=1e-3)
+        np.testing.assert_allclose(kb.descriptors, kr.descriptors, atol=1e-4)
     # a stereo batch of a size that is no multiple of 8: cropped top-left to 48x64, int8 descriptors
     batch = np.zeros((2, 8, 50, 66), np.float32)
     batch[:, :, :48, :64] = np.stack(frames[:2])

@@ -12,6 +12,7 @@ from aerovis_slam.keypoints import (
     mutual_nearest_neighbours,
     nms_mask,
     quantize_descriptors,
+    refine_subpixel,
     sample_descriptors,
 )
 
@@ -79,13 +80,38 @@ def test_nms_topk_and_descriptor_sampling():
     assert set(zip(*np.nonzero(mask))) == {(10, 10), (20, 30), (5, 20)}
     D = 16
     grid = rng.normal(size=(D, 4, 5)).astype(np.float32)
-    kp = extract_keypoints(scores, grid, top_k=2, border=4)
+    kp = extract_keypoints(scores, grid, top_k=2, border=4, subpixel=False)
     np.testing.assert_array_equal(kp.xy, [[10, 10], [30, 20]])  # highest first
+    # sub-pixel: the 3x3 score centroid; the 0.5 neighbour pulls the first peak 0.5 / 1.4 px right
+    kp = extract_keypoints(scores, grid, top_k=2, border=4)
+    np.testing.assert_allclose(kp.xy, [[10 + 0.5 / 1.4, 10], [30, 20]], atol=1e-6)
     np.testing.assert_allclose(kp.scores, [0.9, 0.7])
     # at a cell centre (8 j + 3.5, 8 i + 3.5) bilinear sampling returns that cell's vector
     d = sample_descriptors(grid, np.array([[8 * 2 + 3.5, 8 * 1 + 3.5]]))
     np.testing.assert_allclose(d[0], grid[:, 1, 2] / np.linalg.norm(grid[:, 1, 2]), atol=1e-6)
     np.testing.assert_allclose(np.linalg.norm(kp.descriptors, axis=1), 1.0, atol=1e-6)
+
+
+def test_subpixel_refinement_of_a_sampled_gaussian():
+    # a separable Gaussian blob centred between pixels: the y factor cancels in the x centroid, so the
+    # refined offset is the 1D centroid of the three samples at -1, 0, 1 around the integer peak
+    sigma, cx, cy = 1.0, 20.3, 11.8
+    yy, xx = np.mgrid[0:32, 0:40].astype(np.float64)
+    scores = np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * sigma**2)).astype(np.float32)
+
+    def centroid(delta):
+        w = np.exp(-((np.arange(-1, 2) - delta) ** 2) / (2 * sigma**2))
+        return (w * np.arange(-1, 2)).sum() / w.sum()
+
+    xy = refine_subpixel(scores, np.array([[20, 12]]))
+    np.testing.assert_allclose(xy[0], [20 + centroid(0.3), 12 + centroid(-0.2)], atol=1e-5)
+    # closer to the true centre than the integer peak, moved less than the true offset (3x3 truncation)
+    assert np.all(np.abs(xy[0] - [cx, cy]) < np.abs(np.array([20, 12]) - [cx, cy]))
+    # a symmetric peak stays put, and an empty input stays empty
+    sym = np.zeros((9, 9), np.float32)
+    sym[4, 4], sym[4, 3], sym[4, 5] = 1.0, 0.3, 0.3
+    np.testing.assert_allclose(refine_subpixel(sym, np.array([[4, 4]])), [[4, 4]], atol=1e-7)
+    assert refine_subpixel(sym, np.zeros((0, 2))).shape == (0, 2)
 
 
 def test_int8_descriptors_and_mutual_matching():
