@@ -109,6 +109,29 @@ def make_dataset(cfg: DictConfig, paths: list[Path], size_multiple: int, samples
         samples_per_epoch=samples_per_epoch or int(cfg.data.samples_per_epoch), seed=int(cfg.seed))
 
 
+def init_from_weights(model: torch.nn.Module, name_or_path: str, model_cfg) -> None:
+    """Load the weights of a shipped model (``superlite``...), a ``model.pt`` or a ``train.py`` ``.ckpt``
+    into ``model`` before training (``init_weights=...``: fine-tuning, e.g. on a user's recordings).
+
+    Raises:
+        DataError: unreadable weights, or weights of another architecture (named with both models).
+    """
+    from .checkpoints import load_model
+
+    src, src_cfg, meta = load_model(name_or_path)
+    try:
+        model.load_state_dict(src.state_dict(), strict=True)
+    except RuntimeError as exc:
+        first = str(exc).splitlines()[1].strip() if len(str(exc).splitlines()) > 1 else str(exc)
+        raise DataError(meta["path"], f"init_weights: these weights are a {src_cfg.get('name')} model "
+                                      f"({src_cfg.get('encoder')}, D={src_cfg.get('descriptor_dim')}) and do not fit this run's "
+                                      f"{model_cfg.name} ({model_cfg.encoder}, D={model_cfg.descriptor_dim}): {first}") from None
+    if dict(src_cfg.get("mcts", {})) != dict(OmegaConf.to_container(model_cfg.mcts, resolve=True)):
+        print(f"train.py: note: init_weights {meta['path']} was trained on MCTS {src_cfg.get('mcts')}; this run uses "
+              f"{OmegaConf.to_container(model_cfg.mcts, resolve=True)}", file=sys.stderr)
+    print(f"initialised from {meta['path']} (sha256 {meta['sha256'][:12]})")
+
+
 def job_overrides() -> list[str] | None:
     """The Hydra overrides of the running job (``HydraConfig.get().overrides.task``); None outside Hydra."""
     from hydra.core.hydra_config import HydraConfig
@@ -157,6 +180,8 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
     resume = last if (cfg.get("resume", True) and last.exists()) else None
     if resume:
         print(f"resuming from {resume}")
+    elif cfg.get("init_weights"):
+        init_from_weights(module.model, cfg.init_weights, cfg.model)
     trainer.fit(module, loader, val_loader, ckpt_path=str(resume) if resume else None)
 
     best_auc = float(best_cb.best_model_score) if best_cb.best_model_score is not None else float("nan")

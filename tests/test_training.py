@@ -145,6 +145,29 @@ def test_resume_continues_from_last_checkpoint(tmp_path, sim_cache):
     assert json.loads((run / "summary.json").read_text())["steps"] == 4  # 2 restored + 2 new, not 4 new
 
 
+def test_fine_tuning_starts_from_the_given_weights(tmp_path, sim_cache):
+    """init_weights=superlite: training starts from the shipped weights (one step at learning rate 0
+    leaves every parameter exactly as shipped; BatchNorm's running statistics do move, so buffers are
+    not compared); weights of another architecture are refused with both names."""
+    import torch
+
+    from aerovis_train.checkpoints import load_model
+
+    run = tmp_path / "run"
+    res = _train(run, "init_weights=superlite", "data.crop=[40,56]", "optim.lr=0.0", "+trainer.max_steps=1", cache=sim_cache)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "initialised from" in res.stdout
+    ship, _, _ = load_model("superlite")
+    tuned, _, _ = load_model(run / "model.pt")
+    tuned_params = dict(tuned.named_parameters())
+    for k, a in ship.named_parameters():
+        assert torch.equal(a, tuned_params[k]), k
+    bad = _train(tmp_path / "run2", "model=superevent_plus", "init_weights=superlite", "data.crop=[40,40]", "+trainer.max_steps=1",
+                 cache=sim_cache)
+    assert bad.returncode == 2 and "superlite model" in bad.stderr and "superevent_plus" in bad.stderr
+    assert "Traceback" not in bad.stderr
+
+
 def test_bad_training_input_is_explained(tmp_path, sim_cache):
     res = _train(tmp_path / "run", "model=superevent_plus", "data.crop=[40,56]", "data.crop_fit=error", "+trainer.max_steps=1", cache=sim_cache)
     assert res.returncode == 2 and "must be a multiple of 40" in res.stderr and "Traceback" not in res.stderr
