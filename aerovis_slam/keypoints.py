@@ -91,8 +91,9 @@ def refine_subpixel(scores: np.ndarray, xy: np.ndarray, radius: int = 1) -> np.n
     peak says where between pixels the corner lies. Weighting by the probabilities themselves (not a
     softmax with a temperature) keeps the refinement parameter-free. Written in numpy because the
     runtime has no torch (kornia's ``conv_soft_argmax2d`` is the torch equivalent). Measured on the
-    ``bench`` relative-pose pairs with the shipped SuperLitE: AUC@10 34.6 -> 39.3 % (r = 1); r = 2 and a
-    per-axis quadratic fit gave 38.2 and 38.4 %.
+    ``bench`` relative-pose pairs with the shipped SuperLitE: AUC@10 +1.6 points on average over five
+    pair sets / estimators (from -1.3 to +4.7; README, evaluation); r = 2 and a per-axis quadratic
+    fit did no better. In SLAM its effect is within the run-to-run spread (docs/slam.md).
 
     Args:
         scores: (H, W) keypoint probability.
