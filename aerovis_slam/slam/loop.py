@@ -6,7 +6,9 @@ As in OKVIS2 (REFERENCE.md section 5; paper Fig. 1), in three steps:
    descriptors): every descriptor is assigned to its nearest word of a small vocabulary (k-means
    centres learnt from training data, :func:`train_vocabulary`), the residuals to the word are
    summed per word, each word's block is L2-normalised (intra-normalisation) and so is the whole
-   vector; two keyframes' score is the dot product (cosine similarity, 1 = identical). VLAD rather
+   vector; two keyframes' score is the dot product (cosine similarity, 1 = identical), compared
+   with ``min_score`` times the query's score with its previous keyframe (DBoW2's normalisation, so
+   that one threshold serves learned and binary descriptors alike). VLAD rather
    than a DBoW2 tree: with descriptors of 64 (learned) or 256 bits (ORB) and a few hundred
    keyframes, 64 words and one matrix-vector product per query rank candidates well, with no
    inverse-document-frequency table to learn or keep. Binary descriptors are unpacked to 0/1 bits,
@@ -72,7 +74,8 @@ DEFAULT_CONFIG: dict = {
     "skip_recent_keyframes": 10,  # never a candidate: the last N keyframes ...
     "skip_recent_s": 2.0,  # ... and those of the last seconds
     "min_travel_m": 0.3,  # travelled between candidate and query (less is no loop)
-    "min_score": 0.2,  # VLAD cosine similarity to consider a candidate
+    "min_score": 0.5,  # VLAD cosine to a candidate, relative to the cosine to the previous keyframe
+    "min_previous_score": 0.05,  # floor of that reference (after a sharp turn it can be near 0)
     "max_candidates": 3,  # verified per keyframe, best score first
     "cooldown_keyframes": 5,  # after a closure, keyframes without loop search (same place again)
     "online_vocabulary_keyframes": 5,  # without a vocabulary: learn one from the first N keyframes
@@ -342,6 +345,7 @@ class LoopCloser:
         self._db_store = np.zeros((0, 0), np.float32)  # VLAD rows of indexed keyframes (capacity)
         self._db = self._db_store  # the filled rows, in the order of self._db_ids
         self._db_ids: list[int] = []
+        self._db_row: dict[int, int] = {}  # keyframe id -> row of the VLAD table
         self._cooldown = 0
         self.n_closures = 0
         self.closures = self._loops
@@ -503,6 +507,7 @@ class LoopCloser:
                 grown[:n] = self._db_store[:n]
             self._db_store = grown
         self._db_store[n] = v
+        self._db_row[kf.kf_id] = n
         self._db_ids.append(kf.kf_id)
         self._db = self._db_store[: n + 1]
 
@@ -512,11 +517,17 @@ class LoopCloser:
         if len(self._db_ids) < 2:
             return []
         scores = self._db @ kf.vlad
+        # DBoW2's normalisation: relative to the score with the previous keyframe (the best a true
+        # revisit can expect), one threshold serves every descriptor kind. Raw VLAD cosines differ
+        # by kind: to the previous keyframe ~0.65 for SuperLitE but ~0.12 for ORB (drone8_lit,
+        # handheld_loop), whose true revisits then never reached an absolute 0.2.
+        row_prev = self._db_row.get(self._order[-2]) if len(self._order) >= 2 else None
+        ref = max(float(scores[row_prev]) if row_prev is not None else 1.0, c["min_previous_score"])
         recent = set(self._order[-int(c["skip_recent_keyframes"]) - 1:])
         out = []
         for row in np.argsort(-scores):
             s = float(scores[row])
-            if s < c["min_score"]:
+            if s < c["min_score"] * ref:
                 break
             cand = self._keyframes[self._db_ids[row]]
             if (cand.kf_id in recent or kf.t_us - cand.t_us < c["skip_recent_s"] * 1e6
