@@ -327,7 +327,9 @@ class StereoInertialOdometry:
             if self.initialized:
                 self.recent_velocities.append(np.asarray(state.v_world, np.float64).copy())
         else:
-            self.log.warn("imu-only", f"t={tau} µs: {n_inl} 3D-2D inliers (< {cfg.ransac.min_inliers}): frame propagated with the IMU only")
+            # the count that decided: RANSAC's inliers, or fewer once the pose fit dropped outliers
+            self.log.warn("imu-only", f"t={tau} µs: {n_inl} 3D-2D RANSAC inliers, {len(obs)} kept by the pose fit "
+                                      f"(< {cfg.ransac.min_inliers}): frame propagated with the IMU only")
             if self._visual_failure(tau):
                 state = self._recover(tau, state)
         # landmark statistics (culling of landmarks that project but rarely match)
