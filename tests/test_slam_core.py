@@ -279,6 +279,33 @@ def test_smoother_and_tracking_on_exact_observations():
     assert len(sm.kf_ids) <= cfg.backend.window_keyframes  # older keyframes were marginalised
 
 
+def test_keyframe_in_the_frame_of_a_restart_takes_its_place():
+    """A tracking loss restarts the smoother at that frame; when the same frame re-initialises from
+    stereo, its keyframe would be joined by a zero-length IMU factor, which gtsam cannot solve
+    ("indeterminate linear system"). The keyframe must take the restart's place instead: no backend
+    reset, the new keyframe newest in the window, with the restart's velocity prior."""
+    from aerovis_slam.slam.odometry import StereoInertialOdometry
+
+    sim = _tiny_sim(imu_noise=False)
+    cams = StereoCameras.from_rig(sim.rig, max_width=424, max_height=240, size_multiple=1)
+    odo = StereoInertialOdometry(cams, ImuStream(sim.imu()), sim.rig.imu, SlamConfig())
+    T = sim.trajectory.pose_matrix(np.array([0.5]))[0]
+    state = NavEstimate(T, sim.trajectory.position(np.array([0.5]), 1)[0], gtsam.imuBias.ConstantBias())
+    tau = 500_000
+    odo.kf_id = 1
+    odo._restart_smoother(1, tau, state, sigma_vel=0.5)  # what a tracking loss does at this frame
+    odo.pim = new_preintegration(odo.params, state.bias)
+    # the degenerate factor, as it was added before
+    with pytest.raises(RuntimeError, match="ndeterminate"):
+        odo.smoother.add_keyframe(2, odo.pim, state, Observations.empty(), {})
+    odo._restart_smoother(1, tau, state, sigma_vel=0.5)
+    est = odo._smoother_keyframe(2, tau, state, Observations.empty(), {})
+    assert not any("smoother update failed" in w for w in odo.log.as_list())
+    assert odo.smoother.latest[0] == 2 and odo.smoother.kf_ids == [2]
+    np.testing.assert_allclose(est.T_world_body, T)
+    assert odo._restart_sigma_vel == 0.5 and odo.pim.deltaTij() == 0.0
+
+
 # -- the pipeline ----------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def tiny_preset():

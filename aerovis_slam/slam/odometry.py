@@ -123,6 +123,7 @@ class StereoInertialOdometry:
         self.tracking_losses = 0
         self.recent_velocities: deque[np.ndarray] = deque(maxlen=10)  # of visually tracked frames (initialised)
         self.recovery_kfs = 0                           # keyframes left with loose tracking priors
+        self._restart_sigma_vel: float | None = None    # velocity prior of the last smoother restart
         self.n_keyframes = 0
         self.kf_odom: dict[int, np.ndarray] = {}       # keyframe id -> T_world_body (odometry) at insertion
         self.T_corr = np.eye(4)                         # loop-closure correction: world <- odometry world
@@ -517,6 +518,14 @@ class StereoInertialOdometry:
         """Add keyframe ``kf`` (initial state ``state``) to the smoother, restarting it at ``state``
         when gtsam fails; its estimate becomes ``kf_state`` and starts a fresh preintegration.
         ``update_landmarks``: copy the window's landmark estimates back into the map."""
+        if self.pim.deltaTij() <= 0.0:
+            # a second keyframe at the time of the smoother's newest: the backend was restarted at this
+            # very frame (tracking loss) and the frame re-initialises from stereo. A zero-length IMU
+            # factor has no information (gtsam: "indeterminate linear system"), so this keyframe takes
+            # the restart's place, with the same priors.
+            self._restart_smoother(kf, tau, state, sigma_vel=self._restart_sigma_vel)
+            self.pim = new_preintegration(self.params, state.bias)
+            return state
         try:
             self.smoother.add_keyframe(kf, self.pim, state, obs, positions)
             _, est = self.smoother.latest
@@ -534,6 +543,7 @@ class StereoInertialOdometry:
     def _restart_smoother(self, kf: int, tau: int, state: NavEstimate, sigma_vel: float | None = None) -> None:
         b = self.cfg.backend
         sigma_vel = max(b.prior_velocity_m_s, 0.3) if sigma_vel is None else sigma_vel
+        self._restart_sigma_vel = sigma_vel
         self.smoother.initialize(kf, tau * 1e-6, state, sigma_rollpitch_rad=np.radians(b.prior_rollpitch_deg),
                                  sigma_yaw_rad=np.radians(1.0), sigma_pos_m=0.01, sigma_vel=sigma_vel,
                                  sigma_acc_bias=b.prior_acc_bias, sigma_gyro_bias=b.prior_gyro_bias)
