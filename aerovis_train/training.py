@@ -122,13 +122,15 @@ def init_from_weights(model: torch.nn.Module, name_or_path: str, model_cfg) -> N
     try:
         model.load_state_dict(src.state_dict(), strict=True)
     except RuntimeError as exc:
-        first = str(exc).splitlines()[1].strip() if len(str(exc).splitlines()) > 1 else str(exc)
+        lines = str(exc).splitlines()
+        first = lines[1].strip() if len(lines) > 1 else str(exc)
         raise DataError(meta["path"], f"init_weights: these weights are a {src_cfg.get('name')} model "
                                       f"({src_cfg.get('encoder')}, D={src_cfg.get('descriptor_dim')}) and do not fit this run's "
                                       f"{model_cfg.name} ({model_cfg.encoder}, D={model_cfg.descriptor_dim}): {first}") from None
-    if dict(src_cfg.get("mcts", {})) != dict(OmegaConf.to_container(model_cfg.mcts, resolve=True)):
+    run_mcts = OmegaConf.to_container(model_cfg.mcts, resolve=True)
+    if dict(src_cfg.get("mcts", {})) != dict(run_mcts):
         print(f"train.py: note: init_weights {meta['path']} was trained on MCTS {src_cfg.get('mcts')}; this run uses "
-              f"{OmegaConf.to_container(model_cfg.mcts, resolve=True)}", file=sys.stderr)
+              f"{run_mcts}", file=sys.stderr)
     print(f"initialised from {meta['path']} (sha256 {meta['sha256'][:12]})")
 
 

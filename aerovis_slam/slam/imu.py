@@ -269,7 +269,7 @@ def align_visual_inertial(t_us: np.ndarray, T_vision_body: np.ndarray, stream: I
     y2 = y - A[:, 3:] @ g
     v0, *_ = np.linalg.lstsq(A[:, :3], y2, rcond=None)
     resid = A[:, :3] @ v0 - y2
-    v = np.concatenate([v0[None], np.stack([v0 + g * pim.deltaTij() + R[0] @ pim.deltaVij() for pim in pims])])
+    v = np.concatenate([v0[None], np.stack([v0 + g * dt + R[0] @ pim.deltaVij() for dt, pim in zip(dts, pims)])])
     return Alignment(R_world_vision=rotation_aligning(g, np.array([0.0, 0.0, -1.0])), velocities=v,
                      gyro_bias=bg, gravity_norm=g_norm, residual_m=float(np.sqrt(np.mean(resid ** 2))),
                      tilt_sigma_deg=tilt_sigma, velocity_sigma=vel_sigma)

@@ -518,24 +518,24 @@ class StereoInertialOdometry:
         """Add keyframe ``kf`` (initial state ``state``) to the smoother, restarting it at ``state``
         when gtsam fails; its estimate becomes ``kf_state`` and starts a fresh preintegration.
         ``update_landmarks``: copy the window's landmark estimates back into the map."""
+        est = state
         if self.pim.deltaTij() <= 0.0:
             # a second keyframe at the time of the smoother's newest: the backend was restarted at this
             # very frame (tracking loss) and the frame re-initialises from stereo. A zero-length IMU
             # factor has no information (gtsam: "indeterminate linear system"), so this keyframe takes
             # the restart's place, with the same priors.
             self._restart_smoother(kf, tau, state, sigma_vel=self._restart_sigma_vel)
-            self.pim = new_preintegration(self.params, state.bias)
-            return state
-        try:
-            self.smoother.add_keyframe(kf, self.pim, state, obs, positions)
-            _, est = self.smoother.latest
-            if update_landmarks:
-                for j, p in self.smoother.landmark_estimates().items():
-                    self.lmap.pos[j] = p
-        except RuntimeError as exc:
-            self.log.warn("backend-reset", f"t={tau} µs: smoother update failed ({exc}); backend restarted at the tracked state")
-            self._restart_smoother(kf, tau, state)
-            est = state
+        else:
+            try:
+                self.smoother.add_keyframe(kf, self.pim, state, obs, positions)
+                _, est = self.smoother.latest
+                if update_landmarks:
+                    for j, p in self.smoother.landmark_estimates().items():
+                        self.lmap.pos[j] = p
+            except RuntimeError as exc:
+                self.log.warn("backend-reset", f"t={tau} µs: smoother update failed ({exc}); backend restarted at the tracked state")
+                self._restart_smoother(kf, tau, state)
+                est = state
         self.kf_state = est
         self.pim = new_preintegration(self.params, est.bias)
         return est
