@@ -442,6 +442,67 @@ def test_bench_table_and_json(tmp_path, monkeypatch, empty_config):
     assert bench_mod.classify({"status": "ok", "complete": True, "ate_rmse_m": 0.5, "path_length_m": 1.0}) == "diverged"
 
 
+def test_bench_repeats_perturb_and_aggregate(tmp_path, monkeypatch, empty_config, capsys):
+    """Repeat i >= 1 runs with keypoint noise seeded i (seen in the config the runner gets); the
+    spread table and ``best_on_mean`` aggregate exactly the runs' ATE."""
+    seq = _tiny_sequence(tmp_path / "tiny_a.h5")
+    seen = []
+    # ATE of a run = delta (the fake's alternating offset): learned 1, 2, 3 cm; classical 1.5 cm every time
+    deltas = {("learned", 0): 0.01, ("learned", 1): 0.02, ("learned", 2): 0.03}
+
+    def runner(sequence, detector, config, **kw):
+        d = config.detector
+        seen.append((detector.name, d.keypoint_noise_px, d.keypoint_noise_seed))
+        return _fake_runner(delta=deltas.get((detector.name, d.keypoint_noise_seed), 0.015))(sequence, detector, config, **kw)
+
+    monkeypatch.setattr(bench_mod, "_run_slam", runner)
+    dets = [types.SimpleNamespace(name="learned"), types.SimpleNamespace(name="classical-orb")]
+    rows = bench_mod.run_bench([seq], dets, tmp_path / "b", modes=("sync",), config=str(empty_config), loop=False,
+                               progress=False, repeats=3, keypoint_noise_px=0.3)
+    assert seen == [("learned", 0.0, 0), ("learned", 0.3, 1), ("learned", 0.3, 2),
+                    ("classical-orb", 0.0, 0), ("classical-orb", 0.3, 1), ("classical-orb", 0.3, 2)]
+    assert [(r["repeat"], r["keypoint_noise_px"]) for r in rows[:3]] == [(0, 0.0), (1, 0.3), (2, 0.3)]
+    assert (tmp_path / "b" / "tiny_a" / "learned-sync" / "metrics.json").is_file()
+    m2 = json.loads((tmp_path / "b" / "tiny_a" / "learned-sync-r2" / "metrics.json").read_text())
+    assert m2["keypoint_noise_px"] == 0.3 and m2["keypoint_noise_seed"] == 2
+    pct = {(r["detector"], r["repeat"]): r["ate_pct"] for r in rows}
+    table = (tmp_path / "b" / "table.md").read_text()
+    mean_l = (pct[("learned", 0)] + pct[("learned", 1)] + pct[("learned", 2)]) / 3
+    assert f"{mean_l:.2f} ({pct[('learned', 0)]:.2f}-{pct[('learned', 2)]:.2f})" in table
+    assert f"**{pct[('classical-orb', 0)]:.2f} (" in table  # 1.5 cm every time beats the mean of 1, 2, 3 cm
+    s = bench_mod.summarize(rows)
+    # the first runs: learned (1 cm) best; the means: classical (1.5 < 2 cm) best
+    assert s["learned/sync"]["best_on"] == 1 and s["learned/sync"]["best_on_mean"] == 0
+    assert s["classical-orb/sync"]["best_on_mean"] == 1 and s["classical-orb/sync"]["repeats"] == 3
+    assert s["learned/sync"]["runs"] == 1  # the headline counts describe the first runs
+    # resume reads the noise back from metrics.json
+    again = bench_mod.run_bench([seq], dets, tmp_path / "b", modes=("sync",), config=str(empty_config), loop=False,
+                                progress=False, repeats=3, keypoint_noise_px=0.3, resume=True)
+    assert again == rows and len(seen) == 6
+    # repeats without noise would repeat a sync run exactly: refused
+    with pytest.raises(ValueError, match="noise"):
+        bench_mod.run_bench([seq], dets, tmp_path / "c", repeats=2, keypoint_noise_px=0.0, progress=False)
+    assert main(["bench", "--sequences", str(seq), "--detector", "orb", "--no-learned", "--repeats", "2",
+                 "--keypoint-noise-px", "0", "--out", str(tmp_path / "d"), "--quiet"]) == 2
+    assert "--repeats 2" in capsys.readouterr().err
+
+
+def test_perturb_keypoints_is_seeded_bounded_and_inside():
+    from aerovis_slam.keypoints import Keypoints
+    from aerovis_slam.slam.odometry import perturb_keypoints
+
+    rng = np.random.default_rng(0)
+    xy = np.array([[0.0, 0.0], [10.5, 7.25], [99.0, 49.0]] * 100, np.float32)
+    kp = Keypoints(xy, np.ones(len(xy), np.float32), rng.normal(size=(len(xy), 8)).astype(np.float32))
+    a = perturb_keypoints(kp, np.random.default_rng(5), 0.2, 100, 50)
+    b = perturb_keypoints(kp, np.random.default_rng(5), 0.2, 100, 50)
+    np.testing.assert_array_equal(a.xy, b.xy)  # same seed, same draw
+    d = a.xy - xy
+    assert np.abs(d).max() <= 0.2 + 1e-6 and np.abs(d[1::3]).mean() > 0.05  # uniform on +-0.2: mean |d| 0.1
+    assert a.xy.min() >= 0 and a.xy[:, 0].max() <= 99 and a.xy[:, 1].max() <= 49  # corners stay inside
+    assert a.descriptors is kp.descriptors and a.scores is kp.scores
+
+
 def test_cli_run_end_to_end_on_tiny_matches_eval(tmp_path, capsys):
     """The real pipeline with the shipped bundle on the 1 s tiny sequence; ``eval`` of the written
     trajectory against the sequence's GT reproduces the run's own ATE (same association by

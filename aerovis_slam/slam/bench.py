@@ -14,6 +14,11 @@ as
 * ``diverged`` when its ATE RMSE exceeds ``diverge_pct`` % of the path length and ``diverge_min_m``
   (the paper marks crashes and divergence alike as "failed"; keeping the reason helps debugging),
 * ``no_gt`` when the sequence has no ground truth, else ``ok``.
+
+With ``repeats`` > 1 every run is repeated with seeded keypoint noise
+(:attr:`~aerovis_slam.slam.config.DetectorConfig.keypoint_noise_px`): a sync run is deterministic
+but chaotic, and on handheld sequences one run can be off by a factor of two from the next
+(docs/slam.md). The table then adds the mean, minimum and maximum over the repeats.
 """
 
 from __future__ import annotations
@@ -38,7 +43,8 @@ METRICS_FILE = "metrics.json"
 PLOT_FILE = "traj.png"
 CLASSICAL = ("orb", "sift", "gftt_brief")
 MODE_CONFIG = {"sync": "accurate", "async": "realtime", "live": "realtime"}  # the paper's two settings
-BENCH_FIELDS = ("sequence", "mode", "detector", "status", "ate_rmse_m", "ate_pct", "path_length_m", "rate_hz", "loop_closures")
+BENCH_FIELDS = ("sequence", "mode", "detector", "status", "ate_rmse_m", "ate_pct", "path_length_m", "rate_hz", "loop_closures",
+                "repeat", "keypoint_noise_px")
 
 
 def make_detector(model: str | os.PathLike | None = None, classical: str | None = None, *, top_k: int | None = None,
@@ -115,7 +121,11 @@ def run_sequence(sequence: str | os.PathLike, detector, config, out_dir: str | o
     finally:
         if closer is not None:
             closer.close()
+    det_cfg = getattr(config, "detector", None)
     extra = {"loop": closer.summary() if closer is not None else None,
+             # the sensitivity probe (DetectorConfig): recorded so that a perturbed run is never mistaken for a plain one
+             "keypoint_noise_px": float(getattr(det_cfg, "keypoint_noise_px", 0.0)),
+             "keypoint_noise_seed": int(getattr(det_cfg, "keypoint_noise_seed", 0)),
              "keyframes": getattr(result, "keyframes", None), "pipeline_info": getattr(result, "info", None)}
     if closer is not None:
         result.warnings.extend(w for w in closer.warnings if w not in result.warnings)
@@ -153,18 +163,20 @@ def classify(metrics: dict, *, diverge_pct: float = 25.0, diverge_min_m: float =
     return "ok"
 
 
-def bench_row(sequence: str, mode: str, detector: str, metrics: dict | None, status: str) -> dict:
-    """One ``bench.json`` entry (:data:`BENCH_FIELDS`)."""
+def bench_row(sequence: str, mode: str, detector: str, metrics: dict | None, status: str, *, repeat: int = 0,
+              keypoint_noise_px: float = 0.0) -> dict:
+    """One ``bench.json`` entry (:data:`BENCH_FIELDS`); ``repeat`` 0 is the unperturbed run."""
     m = metrics or {}
     return {"sequence": sequence, "mode": mode, "detector": detector, "status": status,
             "ate_rmse_m": m.get("ate_rmse_m"), "ate_pct": m.get("ate_pct"), "path_length_m": m.get("path_length_m"),
-            "rate_hz": m.get("rate_hz"), "loop_closures": m.get("loop_closures", 0)}
+            "rate_hz": m.get("rate_hz"), "loop_closures": m.get("loop_closures", 0), "repeat": int(repeat),
+            "keypoint_noise_px": float(keypoint_noise_px)}
 
 
 def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str | os.PathLike, *,
               modes: tuple[str, ...] = ("sync", "async"), config: str | None = None, loop: bool = True, resume: bool = False,
               progress: bool = True, diverge_pct: float = 25.0, diverge_min_m: float = 0.10, log=None,
-              stop_event: threading.Event | None = None) -> list[dict]:
+              stop_event: threading.Event | None = None, repeats: int = 1, keypoint_noise_px: float = 0.2) -> list[dict]:
     """Run every sequence x detector x mode; write ``bench.json`` and ``table.md`` in ``out_dir``.
 
     Args:
@@ -174,41 +186,54 @@ def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str 
         resume: reuse runs whose ``metrics.json`` exists in their folder.
         log: callable receiving one human line per run (e.g. ``tqdm.write``).
         stop_event: when set, the current run stops early (recorded as ``partial``) and no further run starts.
+        repeats: runs per sequence x detector x mode: the first as configured, repeat ``i`` >= 1 with
+            keypoint noise of +-``keypoint_noise_px`` px seeded with ``i``.
 
     Returns:
-        The ``bench.json`` rows. Each run's outputs are in ``out_dir/<sequence>/<detector>-<mode>/``.
+        The ``bench.json`` rows. Each run's outputs are in ``out_dir/<sequence>/<detector>-<mode>/``
+        (repeat ``i`` >= 1: ``<detector>-<mode>-r<i>/``).
     """
     from tqdm import tqdm
 
     from .config import load_config
 
+    if repeats < 1:
+        raise ValueError(f"repeats must be at least 1, got {repeats}")
+    if repeats > 1 and not keypoint_noise_px > 0:
+        raise ValueError(f"repeats > 1 need keypoint_noise_px > 0 (sync runs would repeat exactly), got {keypoint_noise_px}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    jobs = [(Path(s), d, m) for s in sequences for m in modes for d in detectors]
+    jobs = [(Path(s), d, m, i) for s in sequences for m in modes for d in detectors for i in range(repeats)]
     rows: list[dict] = []
     bar = tqdm(jobs, desc="aerovis-slam bench", unit="run", disable=not progress)
-    for seq, det, mode in bar:
+    for seq, det, mode, rep in bar:
         name = getattr(det, "name", str(det))
-        bar.set_postfix_str(f"{seq.stem} {name} {mode}")
-        run_dir = out / seq.stem / f"{name}-{mode}"
+        bar.set_postfix_str(f"{seq.stem} {name} {mode}" + (f" repeat {rep}" if repeats > 1 else ""))
+        run_dir = out / seq.stem / (f"{name}-{mode}" + (f"-r{rep}" if rep else ""))
         metrics = None
+        noise = 0.0
         if resume and (run_dir / METRICS_FILE).is_file():
             metrics = json.loads((run_dir / METRICS_FILE).read_text())
+            noise = float(metrics.get("keypoint_noise_px") or 0.0)
         else:
             try:
                 cfg = load_config(config or MODE_CONFIG[mode])
+                if rep:
+                    cfg.detector.keypoint_noise_px, cfg.detector.keypoint_noise_seed = float(keypoint_noise_px), rep
+                noise = cfg.detector.keypoint_noise_px
                 metrics = run_sequence(seq, det, cfg, run_dir, mode=mode, loop=loop, progress=False, stop_event=stop_event)
             except KeyboardInterrupt:
                 raise
             except Exception as exc:  # one crashing run is a "failed" cell, not the end of the benchmark
                 metrics = {"status": f"failed: {type(exc).__name__}: {exc}", "complete": False}
         status = classify(metrics, diverge_pct=diverge_pct, diverge_min_m=diverge_min_m)
-        rows.append(bench_row(seq.stem, mode, name, metrics, status))
+        rows.append(bench_row(seq.stem, mode, name, metrics, status, repeat=rep, keypoint_noise_px=noise))
         if log is not None:
             r = rows[-1]
             ate_txt = f"{r['ate_rmse_m'] * 100:.2f} cm" if r["ate_rmse_m"] is not None else "-"
             rate_txt = f"{r['rate_hz']:.1f} Hz" if r["rate_hz"] else "-"
-            log(f"{seq.stem} {name} {mode}: {status}, ATE {ate_txt}, {rate_txt}, {r['loop_closures']} loop closure(s)"
+            log(f"{seq.stem} {name} {mode}" + (f" repeat {rep}" if repeats > 1 else "")
+                + f": {status}, ATE {ate_txt}, {rate_txt}, {r['loop_closures']} loop closure(s)"
                 + ("" if status != "failed" else f" ({metrics.get('status')})"))
         # rewrite after every run: an interrupted benchmark keeps what it measured
         atomic_write_text(out / "bench.json", json.dumps(rows, indent=2) + "\n")
@@ -218,9 +243,32 @@ def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str 
     return rows
 
 
+def _repeat(r: dict) -> int:
+    return int(r.get("repeat", 0))  # bench.json files written before repeats existed have none
+
+
+def _spread_cells(rows: list[dict]) -> dict[tuple[str, str, str], list[dict]]:
+    """(sequence, detector, mode) -> its rows of every repeat, in repeat order."""
+    out: dict[tuple[str, str, str], list[dict]] = {}
+    for r in sorted(rows, key=_repeat):
+        out.setdefault((r["sequence"], r["detector"], r["mode"]), []).append(r)
+    return out
+
+
+def _mean_ate_pct(runs: list[dict]) -> float | None:
+    """Mean ATE % of path over ``runs`` when every one is ``ok`` (a failure cannot be averaged away)."""
+    if not runs or any(r["status"] != "ok" or r["ate_pct"] is None for r in runs):
+        return None
+    return float(np.mean([r["ate_pct"] for r in runs]))
+
+
 def format_table(rows: list[dict]) -> str:
     """Markdown tables in the form of the paper's Table I: ATE RMSE [cm] per sequence (rows) and
-    detector x mode (columns), the best per row in bold, failures named; then processing rates."""
+    detector x mode (columns), the best per row in bold, failures named; then processing rates.
+    These show the first (unperturbed) run of each cell; with repeats a third table gives the mean,
+    minimum and maximum ATE % over all of them."""
+    all_rows = rows
+    rows = [r for r in rows if _repeat(r) == 0]
     dets = list(dict.fromkeys(r["detector"] for r in rows))
     modes = list(dict.fromkeys(r["mode"] for r in rows))
     seqs = list(dict.fromkeys(r["sequence"] for r in rows))
@@ -261,13 +309,43 @@ def format_table(rows: list[dict]) -> str:
             r = cell.get((s, d, m))
             vals.append("" if r is None or r["rate_hz"] is None else f"{r['rate_hz']:.1f} ({r['loop_closures']} LC)")
         lines.append(f"| {s} | " + " | ".join(vals) + " |")
+    spread = _spread_cells(all_rows)
+    n_rep = max((len(v) for v in spread.values()), default=1)
+    if n_rep > 1:
+        noise = max(float(r.get("keypoint_noise_px", 0.0)) for r in all_rows)
+        lines += ["", f"Run-to-run spread: ATE [% of path] over {n_rep} runs per cell (the run above, then "
+                  f"{n_rep - 1} with +-{noise:g} px of seeded keypoint noise): mean (min-max); the best mean per row "
+                  "in bold. A cell with a run that is not ok has no mean and names the runs that failed.", ""]
+        lines += header(False)
+        for s in seqs:
+            means = {(d, m): _mean_ate_pct(spread.get((s, d, m), [])) for d, m in cols}
+            finite = [v for v in means.values() if v is not None]
+            vals = []
+            for d, m in cols:
+                runs = spread.get((s, d, m), [])
+                bad = [r for r in runs if r["status"] != "ok"]
+                pct = [r["ate_pct"] for r in runs if r["status"] == "ok" and r["ate_pct"] is not None]
+                if not runs:
+                    vals.append("")
+                elif bad:
+                    vals.append(", ".join(f"r{_repeat(r)} {r['status']}" for r in bad)
+                                + (f"; ok: {min(pct):.2f}-{max(pct):.2f}" if pct else ""))
+                else:
+                    txt = f"{means[(d, m)]:.2f} ({min(pct):.2f}-{max(pct):.2f})"
+                    vals.append(f"**{txt}**" if len(finite) > 1 and means[(d, m)] == min(finite) else txt)
+            lines.append(f"| {s} | " + " | ".join(vals) + " |")
     return "\n".join(lines) + "\n"
 
 
 def summarize(rows: list[dict]) -> dict:
-    """Per detector and mode: runs, ok runs, median ATE (cm) and median rate over the ok runs, and
-    ``best_on``: on how many sequences it has the lowest ATE of all detectors in that mode (a run
-    that is not ``ok`` loses to any ``ok`` one)."""
+    """Per detector and mode, over the first run of each cell: runs, ok runs, median ATE (cm) and
+    median rate over the ok runs, and ``best_on``: on how many sequences it has the lowest ATE of
+    all detectors in that mode (a run that is not ``ok`` loses to any ``ok`` one). With repeats also
+    ``repeats`` and ``best_on_mean``: the same count by the mean ATE % over all repeats (a cell with
+    a failed repeat loses)."""
+    spread = _spread_cells(rows)
+    n_rep = max((len(v) for v in spread.values()), default=1)
+    rows = [r for r in rows if _repeat(r) == 0]
     out = {}
     wins: dict[tuple[str, str], int] = {}
     for s in dict.fromkeys(r["sequence"] for r in rows):
@@ -285,4 +363,15 @@ def summarize(rows: list[dict]) -> dict:
             "rate_hz_median": float(np.median([r["rate_hz"] for r in ok if r["rate_hz"]])) if any(r["rate_hz"] for r in ok) else None,
             "best_on": wins.get(key, 0),
         }
+    if n_rep > 1:
+        mean_wins: dict[tuple[str, str], int] = {}
+        for s in dict.fromkeys(r["sequence"] for r in rows):
+            for m in dict.fromkeys(r["mode"] for r in rows):
+                means = {k[1]: _mean_ate_pct(v) for k, v in spread.items() if k[0] == s and k[2] == m}
+                means = {d: v for d, v in means.items() if v is not None}
+                if means:
+                    best = min(means, key=means.get)
+                    mean_wins[(best, m)] = mean_wins.get((best, m), 0) + 1
+        for key in dict.fromkeys((r["detector"], r["mode"]) for r in rows):
+            out[f"{key[0]}/{key[1]}"].update(repeats=n_rep, best_on_mean=mean_wins.get(key, 0))
     return out

@@ -77,6 +77,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--config", default=None, help="one setting for all modes (default: accurate for sync, realtime for async)")
     p.add_argument("--no-loop", action="store_true", help="disable loop closure")
     p.add_argument("--resume", action="store_true", help="reuse runs that already have a metrics.json")
+    p.add_argument("--repeats", type=int, default=1,
+                   help="runs per cell: the first as configured, the others with seeded keypoint noise; the table adds "
+                        "mean (min-max) (default 1)")
+    p.add_argument("--keypoint-noise-px", type=float, default=0.2,
+                   help="uniform keypoint noise of the repeats, +- this many px (default 0.2)")
     p.add_argument("--diverge-pct", type=float, default=25.0, help="diverged: ATE above this %% of the path length ...")
     p.add_argument("--diverge-min-m", type=float, default=0.10, help="... and above this many metres")
     p.add_argument("--out", required=True, help="output folder")
@@ -216,10 +221,14 @@ def cmd_bench(args) -> int:
         dets.append(make_detector(None, kind, like=learned))
     if not dets:
         raise DataError(None, "nothing to benchmark: --no-learned with no --detector")
+    if args.repeats < 1 or (args.repeats > 1 and not args.keypoint_noise_px > 0):
+        raise DataError(None, f"--repeats {args.repeats} --keypoint-noise-px {args.keypoint_noise_px}: repeats must be >= 1, "
+                              "and more than one run needs noise > 0 (sync runs would repeat exactly)")
     with _stop_on_sigint("the current run ends as partial, bench.json keeps what was measured") as stop:
         rows = run_bench(seqs, dets, args.out, modes=tuple(args.modes), config=args.config, loop=not args.no_loop,
                          resume=args.resume, progress=not args.quiet, diverge_pct=args.diverge_pct,
-                         diverge_min_m=args.diverge_min_m, log=None if args.quiet else tqdm.write, stop_event=stop)
+                         diverge_min_m=args.diverge_min_m, log=None if args.quiet else tqdm.write, stop_event=stop,
+                         repeats=args.repeats, keypoint_noise_px=args.keypoint_noise_px)
     summary = {"out": str(Path(args.out)), "runs": len(rows), "ok": sum(r["status"] == "ok" for r in rows),
                "by_detector_mode": summarize(rows)}
     if not args.quiet:

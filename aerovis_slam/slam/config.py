@@ -66,11 +66,20 @@ class DetectorConfig:
             large textureless areas give few keypoints above the bundle's 0.01; the runtime then
             lowers it and relies on ``top_k`` and matching to keep the good ones.
         classical: classical detector kind used when no bundle is given (``orb``, ``sift``, ``gftt_brief``).
+        keypoint_noise_px: a sensitivity probe, 0 for every real use: uniform noise in
+            ``[-keypoint_noise_px, +keypoint_noise_px]`` px added to each keypoint position after
+            detection (descriptors unchanged), drawn from a generator seeded with
+            ``keypoint_noise_seed``. A sync run is deterministic but chaotic (a fraction of a pixel
+            decides which frames become keyframes and when initialisation is accepted), so one run
+            is one draw; ``aerovis-slam bench --repeats`` uses this to measure the spread.
+        keypoint_noise_seed: seed of that noise.
     """
 
     top_k: int | None = 300
     threshold: float | None = 0.001
     classical: str = "orb"
+    keypoint_noise_px: float = 0.0
+    keypoint_noise_seed: int = 0
 
 
 @dataclass
@@ -321,6 +330,8 @@ def _validate(cfg: SlamConfig, path) -> None:
         raise DataError(path, f"input.max_width/max_height must be at least 16, got {cfg.input.max_width}x{cfg.input.max_height}")
     from ..classical import DETECTORS
 
+    if cfg.detector.keypoint_noise_px < 0:
+        raise DataError(path, f"detector.keypoint_noise_px must be >= 0, got {cfg.detector.keypoint_noise_px}")
     if cfg.detector.classical not in DETECTORS:
         raise DataError(path, f"detector.classical must be one of {sorted(DETECTORS)}, got {cfg.detector.classical!r}")
 

@@ -52,6 +52,14 @@ from .ransac import bearings, pnp_ransac, position_given_rotation, relative_pose
 from .stereo import match_stereo
 
 
+def perturb_keypoints(kp: Keypoints, rng: np.random.Generator, noise_px: float, width: int, height: int) -> Keypoints:
+    """``kp`` with uniform noise in ``[-noise_px, noise_px]`` added to each coordinate, kept inside the
+    ``width`` x ``height`` image; scores and descriptors unchanged. The sensitivity probe of
+    :attr:`~aerovis_slam.slam.config.DetectorConfig.keypoint_noise_px`."""
+    xy = kp.xy + rng.uniform(-noise_px, noise_px, kp.xy.shape)
+    return Keypoints(np.clip(xy, 0, [width - 1, height - 1]).astype(np.float32), kp.scores, kp.descriptors)
+
+
 @dataclass
 class FrameResult:
     """Output of one iteration.
@@ -130,11 +138,16 @@ class StereoInertialOdometry:
         self.loop_corrections = 0
         self.rotate_outputs = None                      # set at initialisation: R_world_vision to apply to earlier outputs
         self._min_dt = 1.0 / cfg.max_rate_hz
+        self._keypoint_noise = np.random.default_rng(cfg.detector.keypoint_noise_seed)
 
     # ------------------------------------------------------------------------------------------
     def _detect(self, detector, batch: np.ndarray) -> tuple[Keypoints, Keypoints]:
         k = self.cfg.detector.top_k
         kps = detector.detect(batch, top_k=k) if k is not None else detector.detect(batch)
+        noise = self.cfg.detector.keypoint_noise_px
+        if noise > 0:
+            h, w = batch.shape[-2:]
+            kps = [perturb_keypoints(kp, self._keypoint_noise, noise, w, h) for kp in kps[:2]]
         return kps[0], kps[1]
 
     def _min_similarity(self, kp: Keypoints) -> float:
