@@ -306,6 +306,69 @@ def test_keyframe_in_the_frame_of_a_restart_takes_its_place():
     assert odo._restart_sigma_vel == 0.5 and odo.pim.deltaTij() == 0.0
 
 
+def test_smoother_finishes_an_ill_conditioned_update_with_qr():
+    """Cholesky factorises the normal equations and squares their condition number. Two extra
+    points tied by a 1e-6 m between factor (0.5 m apart), each with only a 1e8 m prior (both at
+    the same place, so that there is something to solve), make it ~1e28: gtsam's
+    Cholesky reports an "indeterminate linear system" although the system is determinate (QR on the
+    Jacobian, condition ~1e14, solves it). ``add_keyframe`` must finish that update with QR in place
+    (the keyframe and the points are in the window, the tie holds to the solver's precision) and
+    try Cholesky first again at the next update, counting the fallbacks."""
+    sim = _tiny_sim(imu_noise=False)
+    cams = StereoCameras.from_rig(sim.rig, max_width=424, max_height=240, size_multiple=1)
+    params = preintegration_params(sim.rig.imu)
+    sm = KeyframeSmoother(SlamConfig().backend, cams, params)
+    T = sim.trajectory.pose_matrix(np.array([0.5]))[0]
+    state = NavEstimate(T, sim.trajectory.position(np.array([0.5]), 1)[0], gtsam.imuBias.ConstantBias())
+    sm.initialize(0, 0.5, state, sigma_rollpitch_rad=0.01, sigma_vel=0.05, sigma_acc_bias=0.1, sigma_gyro_bias=0.01)
+    P = gtsam.symbol_shorthand.P
+    real = sm.smoother
+
+    class IllConditioned:  # the real smoother, with the ill-conditioned pair added to one update
+        def __init__(self):
+            self.armed = True
+
+        def update(self, graph=None, values=None, stamps=None, remove=None):
+            if graph is None:
+                return real.update()
+            if self.armed:
+                self.armed = False
+                for i, x in enumerate((1.0, 1.5)):
+                    values.insert(P(i), np.array([x, 0.0, 0.0]))
+                    graph.add(gtsam.PriorFactorPoint3(P(i), np.array([1.0, 0.0, 0.0]), gtsam.noiseModel.Isotropic.Sigma(3, 1e8)))
+                    stamps[P(i)] = max(stamps.values())
+                graph.add(gtsam.BetweenFactorPoint3(P(0), P(1), np.array([0.5, 0, 0]), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
+            return real.update(graph, values, stamps, remove)
+
+        def __getattr__(self, name):
+            return getattr(real, name)
+
+    sm.smoother = IllConditioned()
+    with pytest.raises(RuntimeError, match="ndetermina"):  # what Cholesky alone does with it
+        lm = gtsam.LevenbergMarquardtParams()
+        alone = gtsam.BatchFixedLagSmoother(5.0, lm)
+        g, v = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        for i, x in enumerate((1.0, 1.5)):
+            v.insert(P(i), np.array([x, 0.0, 0.0]))
+            g.add(gtsam.PriorFactorPoint3(P(i), np.array([1.0, 0.0, 0.0]), gtsam.noiseModel.Isotropic.Sigma(3, 1e8)))
+        g.add(gtsam.BetweenFactorPoint3(P(0), P(1), np.array([0.5, 0, 0]), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
+        alone.update(g, v, {P(0): 0.0, P(1): 0.0})
+    pim = new_preintegration(params)
+    ImuStream(sim.imu()).integrate(pim, 500_000, 600_000)
+    guess = NavEstimate.from_navstate(pim.predict(state.navstate(), state.bias), state.bias)
+    sm.add_keyframe(1, pim, guess, Observations.empty(), {})
+    assert sm.qr_fallbacks == 1 and sm.kf_ids == [0, 1]
+    assert real.params().getLinearSolverType() == "MULTIFRONTAL_CHOLESKY"
+    est = real.calculateEstimate()
+    np.testing.assert_allclose(est.atPoint3(P(1)) - est.atPoint3(P(0)), [0.5, 0, 0], atol=1e-6)
+    # noise-free IMU over 0.1 s from the true state: the new keyframe where the trajectory is
+    T1 = sim.trajectory.pose_matrix(np.array([0.6]))[0]
+    np.testing.assert_allclose(sm.latest[1].T_world_body[:3, 3], T1[:3, 3], atol=1e-3)
+    # the next update tries Cholesky again; the pair is still in the window, so QR finishes it again
+    sm.add_keyframe(2, pim, guess, Observations.empty(), {})
+    assert sm.qr_fallbacks == 2 and real.params().getLinearSolverType() == "MULTIFRONTAL_CHOLESKY"
+
+
 # -- the pipeline ----------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def tiny_preset():

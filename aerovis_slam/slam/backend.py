@@ -145,6 +145,7 @@ class KeyframeSmoother:
         self._bPs = [c.body_P_sensor for c in cams.cams]
         self._noise = pixel_noise(cfg)
         self._lm_prior = gtsam.noiseModel.Isotropic.Sigma(3, 5.0)
+        self.qr_fallbacks = 0  # updates that Cholesky could not solve and QR finished (over all resets)
         self.reset()
 
     def reset(self) -> None:
@@ -267,7 +268,12 @@ class KeyframeSmoother:
                                                                             self.cfg.max_iterations))
         self.smoother.params().setMaxIterations(n_iter)
         t0 = time.perf_counter()
-        result = self.smoother.update(graph, values, stamps, remove)
+        try:
+            result = self.smoother.update(graph, values, stamps, remove)
+        except RuntimeError as exc:
+            if "ndetermina" not in str(exc):  # gtsam's IndeterminantLinearSystemException (both spellings)
+                raise
+            result = self._update_with_qr()
         dt_ms = (time.perf_counter() - t0) * 1e3
         iters = max(int(result.getIterations()), 1)
         self._iter_ms = 0.7 * self._iter_ms + 0.3 * dt_ms / iters
@@ -286,6 +292,27 @@ class KeyframeSmoother:
         self._values = est
         return SmootherUpdate(iterations=iters, time_ms=dt_ms, error=float(result.getError()), landmarks=len(self.lm_key),
                               new_landmarks=new_keys, dropped_observations=dropped, removed_observations=len(remove))
+
+    def _update_with_qr(self):
+        """Finish an update whose Cholesky solve failed, with QR.
+
+        Cholesky factorises the normal equations, whose condition number is the square of the
+        Jacobian's; after a stretch of weak visual constraints (a window of keyframes that share few
+        landmarks) it can fail on a system that is determinate but poorly conditioned ("indeterminate
+        linear system"). QR works on the Jacobian itself. It costs about twice as much per update
+        (measured on handheld_loop), so it serves only as the fallback. gtsam's
+        BatchFixedLagSmoother has already inserted the new factors and values when its
+        optimisation or marginalisation throws (the factors are removed only after the marginals
+        are computed), so an update without new input finishes the same step.
+        """
+        params = self.smoother.params()
+        params.setLinearSolverType("MULTIFRONTAL_QR")
+        try:
+            result = self.smoother.update()
+        finally:
+            params.setLinearSolverType("MULTIFRONTAL_CHOLESKY")
+        self.qr_fallbacks += 1
+        return result
 
     def _observations_to_drop(self, seq: int) -> list[int]:
         """Factor slots of the observations that keyframes leaving at this update made of staying landmarks.

@@ -288,6 +288,7 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
         "imu_gaps": len(gaps),
         "landmarks": len(odo.lmap),
         "loop_corrections_applied": odo.loop_corrections,
+        "backend_qr_fallbacks": odo.smoother.qr_fallbacks,
         "initialized": odo.initialized,
         "resolution": [cams.left.width, cams.left.height],
         "t_begin_us": int(t_begin), "t_end_us": int(t_end),
