@@ -295,6 +295,67 @@ def test_verification_rejects_wrong_geometry_and_excess_drift(vocabulary):
     closer.close()
 
 
+class _RefinedLater(LoopCloser):
+    """A closer fed wrong landmarks for the first ``n_bad`` keyframes (each keypoint paired with
+    another's point: a broken triangulation), then, at keyframe ``refine_at``, the right ones
+    through :meth:`LoopCloser.update_points` (as the odometry does once its smoother refined them)."""
+
+    def __init__(self, *args, n_bad: int = 10, refine_at: int | None = None, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.n_bad, self.refine_at, self.true_points = n_bad, refine_at, {}
+
+    def add_keyframe(self, kf_id, t_us, T_world_body, keypoints, points_body, point_valid, K_, T_body_cam):
+        if kf_id < self.n_bad:
+            self.true_points[kf_id] = points_body.copy()
+            points_body = np.roll(points_body, 7, axis=0)
+        if kf_id == self.refine_at:
+            for k, pts in self.true_points.items():
+                self.update_points(k, np.arange(len(pts)), pts)
+        super().add_keyframe(kf_id, t_us, T_world_body, keypoints, points_body, point_valid, K_, T_body_cam)
+
+
+def test_update_points_feeds_loop_verification(vocabulary):
+    # the start's keyframes hold wrong landmarks: the revisit is proposed but PnP refuses it
+    closer = _RefinedLater(vocabulary=vocabulary)
+    drive(closer)
+    assert closer.stats["rejected_inliers"] > 0 and closer.n_closures == 0
+    closer.close()
+    # the same, but refined before the revisit: the loop to the start closes
+    closer = _RefinedLater(vocabulary=vocabulary, refine_at=12)
+    drive(closer)
+    assert closer.n_closures >= 1 and closer.closures[0].match < 10
+    with pytest.raises(ValueError, match="rows must lie in"):
+        closer.update_points(3, np.array([10_000]), np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="1 rows but 2 points"):
+        closer.update_points(3, np.array([0]), np.zeros((2, 3)))
+    with pytest.raises(KeyError, match="never added"):
+        closer.update_points(12345, np.array([0]), np.zeros((1, 3)))
+    closer.update_points(3, np.array([0]), np.full((1, 3), np.nan))  # a lost estimate invalidates the point
+    assert not closer._keyframes[3].point_valid[0]
+    closer.close()
+
+
+def test_odometry_refreshes_loop_points_from_the_smoother_window():
+    """Keyframes in the smoother's window get its landmarks in the body frame of its own estimate of
+    their pose; landmarks that left the window keep their points; keyframes out of the window are forgotten."""
+    from aerovis_slam.slam.odometry import StereoInertialOdometry
+    rng = np.random.default_rng(3)
+    poses = {k: circle_pose(np.radians(10.0 * k)) for k in (4, 5, 6)}
+    landmarks = {j: rng.normal(0, 2, 3) for j in (10, 11, 12)}  # 13 has left the window
+    smoother = types.SimpleNamespace(kf_ids=[5, 6], landmark_estimates=lambda: landmarks,
+                                     estimates={k: types.SimpleNamespace(T_world_body=T) for k, T in poses.items()})
+    calls = []
+    closer = types.SimpleNamespace(update_points=lambda k, rows, pts: calls.append((k, rows, pts)))
+    odo = types.SimpleNamespace(smoother=smoother, loop_closer=closer, kf_loop_rows={
+        4: (np.array([0]), np.array([10])), 5: (np.array([2, 7, 9]), np.array([13, 11, 10])), 6: (np.array([1]), np.array([13]))})
+    StereoInertialOdometry._refresh_loop_points(odo)
+    assert set(odo.kf_loop_rows) == {5, 6} and len(calls) == 1
+    k, rows, pts = calls[0]
+    assert k == 5 and rows.tolist() == [7, 9]
+    expected = transform_points(invert_T(poses[5]), np.stack([landmarks[11], landmarks[10]]))
+    np.testing.assert_allclose(pts, expected, atol=1e-12)
+
+
 def test_guided_matching_closes_a_loop_whose_appearance_changed(vocabulary):
     """At the revisit every descriptor's global nearest neighbour is another landmark, so global
     matching gives a wrong geometry; matching within 40 px of the odometry's projection (the drift

@@ -405,6 +405,28 @@ class LoopCloser:
             self._detect(kf)
         self.timings["loop_detection"].append((time.perf_counter() - t_start) * 1e3)
 
+    def update_points(self, kf_id: int, rows: np.ndarray, points_body: np.ndarray) -> None:
+        """Replace landmarks of keyframe ``kf_id`` by better estimates (the smoother's, once later
+        keyframes have observed them).
+
+        Args:
+            kf_id: a keyframe already added.
+            rows: (M,) indices into that keyframe's keypoints.
+            points_body: (M, 3) their landmarks in the keyframe's body frame (m), expressed with the
+                keyframe pose of the same estimate; non-finite rows become invalid.
+        """
+        kf = self._keyframes.get(int(kf_id))
+        if kf is None:
+            raise KeyError(f"update_points: keyframe {kf_id} was never added")
+        rows = np.asarray(rows, np.int64).reshape(-1)
+        pts = np.asarray(points_body, np.float64).reshape(-1, 3)
+        if len(rows) != len(pts):
+            raise ValueError(f"keyframe {kf_id}: {len(rows)} rows but {len(pts)} points")
+        if len(rows) and (rows.min() < 0 or rows.max() >= len(kf.keypoints)):
+            raise ValueError(f"keyframe {kf_id}: rows must lie in [0, {len(kf.keypoints)}), got {rows.min()}..{rows.max()}")
+        kf.points_body[rows] = pts
+        kf.point_valid[rows] = np.isfinite(pts).all(1)
+
     def add_odometry(self, kf_from: int, kf_to: int, T_from_to: np.ndarray) -> None:
         """Relative motion between two keyframes (``T_from_to`` maps ``to`` body points into ``from``)."""
         self._odometry[(int(kf_from), int(kf_to))] = np.asarray(T_from_to, np.float64).copy()

@@ -41,7 +41,7 @@ import gtsam
 import numpy as np
 
 from ..calib import ImuNoise
-from ..geometry import invert_T
+from ..geometry import invert_T, transform_points
 from ..keypoints import Keypoints, match_keypoints
 from .backend import KeyframeSmoother, NavEstimate, Observations, track_frame
 from .cameras import StereoCameras
@@ -134,6 +134,7 @@ class StereoInertialOdometry:
         self._restart_sigma_vel: float | None = None    # velocity prior of the last smoother restart
         self.n_keyframes = 0
         self.kf_odom: dict[int, np.ndarray] = {}       # keyframe id -> T_world_body (odometry) at insertion
+        self.kf_loop_rows: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # window keyframe -> (keypoint rows, landmark ids) given to the loop closer
         self.T_corr = np.eye(4)                         # loop-closure correction: world <- odometry world
         self.loop_corrections = 0
         self.rotate_outputs = None                      # set at initialisation: R_world_vision to apply to earlier outputs
@@ -572,12 +573,36 @@ class StereoInertialOdometry:
         lm_idx = np.concatenate([obs.landmark[left], new_ids]).astype(np.int64)
         pts_body[kp_idx] = self.lmap.pos[lm_idx] @ T_bw[:3, :3].T + T_bw[:3, 3]
         valid[kp_idx] = True
+        self._refresh_loop_points()
+        self.kf_loop_rows[kf] = (kp_idx, lm_idx)
         prev = max(self.kf_odom) if self.kf_odom else None
         self.kf_odom[kf] = T_wb.copy()
         self.loop_closer.add_keyframe(kf, int(tau), T_wb.copy(), kpL, pts_body, valid, self.cams.left.K.copy(),
                                       self.cams.left.T_body_cam.copy())
         if prev is not None:
             self.loop_closer.add_odometry(prev, kf, invert_T(self.kf_odom[prev]) @ T_wb)
+
+    def _refresh_loop_points(self) -> None:
+        """Give the loop closer the smoother's current landmarks of the keyframes still in its window.
+
+        A keyframe's landmarks as inserted are mostly fresh stereo triangulations (~4 px of
+        disparity at 424x240: +-6-9 % in depth); later keyframes refine them. Expressed in the body
+        frame of the same estimate's keyframe pose (not the pose at insertion, from which the window
+        has moved on), they measured loops about twice as accurately on the bench preset (the same
+        five loops: 1.5-10.4 cm instead of 3.5-17.7 cm). Each keyframe keeps the estimate of the last
+        update before it leaves the window.
+        """
+        window = set(self.smoother.kf_ids)
+        landmarks = self.smoother.landmark_estimates()
+        for k in [k for k in self.kf_loop_rows if k not in window]:
+            del self.kf_loop_rows[k]
+        for k, (kp_idx, lm_idx) in self.kf_loop_rows.items():
+            refined = np.array([j in landmarks for j in lm_idx.tolist()], bool)
+            if not refined.any() or k not in self.smoother.estimates:
+                continue
+            P_world = np.stack([landmarks[j] for j in lm_idx[refined].tolist()])
+            self.loop_closer.update_points(k, kp_idx[refined],
+                                           transform_points(invert_T(self.smoother.estimates[k].T_world_body), P_world))
 
     # ------------------------------------------------------------------------------------------
     def _try_initialize(self, tau: int, kpL: Keypoints, kpR: Keypoints) -> None:
