@@ -163,6 +163,7 @@ class KeyframeSmoother:
         self._seq = 0
         self._iter_ms = 5.0                   # running estimate of one LM iteration's cost
         self.estimates: dict[int, NavEstimate] = {}
+        self.landmarks: dict[int, np.ndarray] = {}  # landmark id -> world position (m), window after the last update
         self.initialized = False
 
     # ------------------------------------------------------------------------------------------
@@ -289,7 +290,8 @@ class KeyframeSmoother:
         est = self.smoother.calculateEstimate()
         self.estimates = {k: NavEstimate(est.atPose3(X(k)).matrix(), np.asarray(est.atVector(V(k))).copy(),
                                          est.atConstantBias(B(k))) for k in self.kf_ids}
-        self._values = est
+        # read out once per update: the map copy and the loop closer's refresh both need them
+        self.landmarks = {j: np.asarray(est.atPoint3(k)) for j, k in self.lm_key.items() if est.exists(k)}
         return SmootherUpdate(iterations=iters, time_ms=dt_ms, error=float(result.getError()), landmarks=len(self.lm_key),
                               new_landmarks=new_keys, dropped_observations=dropped, removed_observations=len(remove))
 
@@ -346,11 +348,8 @@ class KeyframeSmoother:
         return out
 
     def landmark_estimates(self) -> dict[int, np.ndarray]:
-        """World positions of the landmarks in the window after the last update."""
-        vals = getattr(self, "_values", None)
-        if vals is None:
-            return {}
-        return {j: np.asarray(vals.atPoint3(k)) for j, k in self.lm_key.items() if vals.exists(k)}
+        """World positions (m) of the landmarks in the window after the last update, by landmark id."""
+        return self.landmarks
 
     @property
     def latest(self) -> tuple[int, NavEstimate]:

@@ -571,7 +571,7 @@ class StereoInertialOdometry:
         left = obs.cam == 0
         kp_idx = np.concatenate([obs_kp[left], rowsL]).astype(np.int64)
         lm_idx = np.concatenate([obs.landmark[left], new_ids]).astype(np.int64)
-        pts_body[kp_idx] = self.lmap.pos[lm_idx] @ T_bw[:3, :3].T + T_bw[:3, 3]
+        pts_body[kp_idx] = transform_points(T_bw, self.lmap.pos[lm_idx])
         valid[kp_idx] = True
         self._refresh_loop_points()
         self.kf_loop_rows[kf] = (kp_idx, lm_idx)
@@ -598,7 +598,7 @@ class StereoInertialOdometry:
             del self.kf_loop_rows[k]
         for k, (kp_idx, lm_idx) in self.kf_loop_rows.items():
             refined = np.array([j in landmarks for j in lm_idx.tolist()], bool)
-            if not refined.any() or k not in self.smoother.estimates:
+            if not refined.any():
                 continue
             P_world = np.stack([landmarks[j] for j in lm_idx[refined].tolist()])
             self.loop_closer.update_points(k, kp_idx[refined],
