@@ -24,8 +24,8 @@ from aerovis_slam.slam.detectors import StereoClassicalDetector
 from aerovis_slam.slam.frontend import project_landmarks
 from aerovis_slam.slam.imu import ImuStream, align_visual_inertial, new_preintegration, preintegration_params
 from aerovis_slam.slam.pipeline import run_slam
-from aerovis_slam.slam.ransac import (bearings, pnp_ransac, position_given_rotation, project_points, rotation_error_deg,
-                                      rotation_ransac)
+from aerovis_slam.slam.ransac import (bearings, pnp_ransac, position_given_rotation, project_points, reprojection_error,
+                                      rotation_error_deg, rotation_ransac)
 from aerovis_slam.slam.stereo import search_disparity, triangulate
 from aerovis_slam.slam.trajectory import ate
 
@@ -85,6 +85,20 @@ def test_pnp_ransac_rejects_known_outliers():
     np.testing.assert_array_equal(inl, ~outliers)  # every outlier is more than 2 px off any consistent pose
     # the inliers are exact, so the refined pose is exact up to the LM tolerance
     assert np.abs(T_est - T).max() < 1e-6
+
+
+def test_reprojection_error_is_the_pixel_distance_and_inf_where_undefined():
+    T_cam_world = np.eye(4)
+    T_cam_world[:3, 3] = [0.0, 0.0, 1.0]  # world origin 1 m in front of the camera
+    pw = np.array([[0.0, 0.0, 1.0],  # z = 2 m: projects to the principal point
+                   [0.5, 0.0, 1.0],  # z = 2 m: fx * 0.5 / 2 px right of it
+                   [0.0, 0.0, -3.0],  # z = -2 m: behind the camera
+                   [np.nan, 0.0, 1.0]])
+    pp = K[:2, 2]
+    xy = np.array([pp + [3.0, 4.0], pp + [K[0, 0] * 0.25, 0.0], pp, pp])
+    e = reprojection_error(pw, T_cam_world, K, xy)
+    np.testing.assert_allclose(e[:2], [5.0, 0.0], atol=1e-12)  # a 3-4-5 offset; an exact projection
+    assert np.isinf(e[2:]).all()  # behind and undefined points are never inliers
 
 
 def test_rotation_only_model_on_pure_rotation():

@@ -30,8 +30,10 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
+from ..geometry import invert_T
 from .cameras import StereoCameras
 from .config import BackendConfig
+from .ransac import reprojection_error
 
 X = gtsam.symbol_shorthand.X
 V = gtsam.symbol_shorthand.V
@@ -438,11 +440,6 @@ def track_frame(cams: StereoCameras, cfg: BackendConfig, kf_state: NavEstimate,
             m = obs.cam == c
             if not m.any():
                 continue
-            T_cw = np.linalg.inv(T_wb @ cams.cams[c].T_body_cam)
-            p = points_world[m] @ T_cw[:3, :3].T + T_cw[:3, 3]
-            K = cams.cams[c].K
-            with np.errstate(divide="ignore", invalid="ignore"):
-                uv = p[:, :2] / p[:, 2:3] * np.diag(K)[:2] + K[:2, 2]
-            err = np.linalg.norm(uv - obs.xy[m], axis=1)
-            inl[m] = (p[:, 2] > 0) & (np.nan_to_num(err, nan=np.inf) <= max_reproj_px)
+            T_cw = invert_T(T_wb @ cams.cams[c].T_body_cam)
+            inl[m] = reprojection_error(points_world[m], T_cw, cams.cams[c].K, obs.xy[m]) <= max_reproj_px
     return TrackResult(state, inl, iterations=int(opt.iterations()), error=float(opt.error()))

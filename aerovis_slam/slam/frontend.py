@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from ..geometry import invert_T, project, transform_points
 from ..keypoints import Keypoints, pair_similarity
 from .cameras import CameraModel
 from .stereo import best_matches
@@ -127,11 +128,7 @@ class MapMatches:
 def project_landmarks(points_world: np.ndarray, T_world_body: np.ndarray, cam: CameraModel,
                       margin_px: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Pixels (N, 2) of world points in ``cam`` at a body pose, and visible (N,) (in front, inside +- margin)."""
-    T_cam_world = np.linalg.inv(T_world_body @ cam.T_body_cam)
-    p = points_world @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
-    z = p[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = p[:, :2] / z[:, None] * np.diag(cam.K)[:2] + cam.K[:2, 2]
+    uv, z = project(transform_points(invert_T(T_world_body @ cam.T_body_cam), points_world), cam.K)
     vis = (z > 0.05) & np.isfinite(uv).all(axis=1)
     vis &= (uv[:, 0] >= -0.5 - margin_px) & (uv[:, 0] <= cam.width - 0.5 + margin_px)
     vis &= (uv[:, 1] >= -0.5 - margin_px) & (uv[:, 1] <= cam.height - 0.5 + margin_px)

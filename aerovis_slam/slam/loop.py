@@ -61,7 +61,7 @@ import numpy as np
 
 from ..errors import DataError
 from ..fileio import atomic_write_bytes
-from ..geometry import invert_T, rotation_angle_deg
+from ..geometry import invert_T, project, rotation_angle_deg, transform_points
 from ..keypoints import Keypoints, match_keypoints, pair_similarity
 from .frontend import window_matches
 
@@ -646,12 +646,11 @@ class LoopCloser:
         if len(valid) == 0 or len(query.keypoints) == 0:
             return np.zeros((0, 2), np.int64)
         T_cq_mb = invert_T(query.T_world_body @ query.T_body_cam) @ match.T_world_body  # match body -> query camera
-        p = match.points_body[valid] @ T_cq_mb[:3, :3].T + T_cq_mb[:3, 3]
-        front = p[:, 2] > 0.05
-        valid, p = valid[front], p[front]
+        uv, z = project(transform_points(T_cq_mb, match.points_body[valid]), query.K)
+        front = z > 0.05
+        valid, uv = valid[front], uv[front]
         if len(valid) == 0:
             return np.zeros((0, 2), np.int64)
-        uv = p[:, :2] / p[:, 2:3] * np.diag(query.K)[:2] + query.K[:2, 2]
         desc_m, desc_q = match.keypoints.descriptors, query.keypoints.descriptors
         m = window_matches(uv, query.keypoints.xy, float(c["guided_window_px"]),
                            lambda i, j: pair_similarity(desc_m, desc_q, valid[i], j), float(c["guided_min_similarity"]))

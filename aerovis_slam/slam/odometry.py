@@ -48,7 +48,7 @@ from .cameras import StereoCameras
 from .config import SlamConfig
 from .frontend import KeyframeSelector, LandmarkMap, edge_shapes, match_to_map, spread_subset, structure_tensor
 from .imu import ImuStream, align_visual_inertial, gravity_rotation_from_acc, new_preintegration, preintegration_params
-from .ransac import bearings, pnp_ransac, position_given_rotation, relative_pose_ransac, rotation_ransac
+from .ransac import bearings, pnp_ransac, position_given_rotation, relative_pose_ransac, reprojection_error, rotation_ransac
 from .stereo import match_stereo
 
 
@@ -185,12 +185,7 @@ class StereoInertialOdometry:
     def _check_reprojection(self, m, kp: Keypoints, cam, T_wb: np.ndarray, thr: float) -> np.ndarray:
         if len(m) == 0:
             return np.zeros(0, bool)
-        T_cw = invert_T(T_wb @ cam.T_body_cam)
-        p = self.lmap.pos[m.landmark] @ T_cw[:3, :3].T + T_cw[:3, 3]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            uv = p[:, :2] / p[:, 2:3] * np.diag(cam.K)[:2] + cam.K[:2, 2]
-        e = np.linalg.norm(uv - kp.xy[m.keypoint], axis=1)
-        return (p[:, 2] > 0) & (np.nan_to_num(e, nan=np.inf) <= thr)
+        return reprojection_error(self.lmap.pos[m.landmark], invert_T(T_wb @ cam.T_body_cam), cam.K, kp.xy[m.keypoint]) <= thr
 
     def _rotation_only(self, kpL: Keypoints) -> np.ndarray | None:
         """``R_world_body`` from 2D-2D matches to the last keyframe under pure rotation, or None."""

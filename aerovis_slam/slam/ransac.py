@@ -20,16 +20,20 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..geometry import so3_log, transform_points
+from ..geometry import project, so3_log, transform_points
 
 
 def project_points(points_world: np.ndarray, T_cam_world: np.ndarray, K: np.ndarray) -> np.ndarray:
     """(N, 3) world points -> (N, 2) pixels (NaN behind the camera)."""
-    p = transform_points(T_cam_world, np.asarray(points_world, np.float64))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = (p[:, :2] / p[:, 2:3]) * np.diag(K)[:2] + K[:2, 2]
-    uv[p[:, 2] <= 0] = np.nan
-    return uv
+    return project(transform_points(T_cam_world, np.asarray(points_world, np.float64)), K)[0]
+
+
+def reprojection_error(points_world: np.ndarray, T_cam_world: np.ndarray, K: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """(N,) pixel distance between world points (N, 3) projected at ``T_cam_world`` and observed
+    pixels ``xy`` (N, 2); inf behind the camera or where anything is NaN, so that ``<= thr`` is the
+    inlier test."""
+    e = np.linalg.norm(project_points(points_world, T_cam_world, K) - xy, axis=1)
+    return np.nan_to_num(e, nan=np.inf)
 
 
 def _to_T(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
@@ -74,8 +78,7 @@ def pnp_ransac(points_world: np.ndarray, xy: np.ndarray, K: np.ndarray, *, repro
         best_T = _to_T(rvec, tvec)
         inl[idx.ravel()] = True
     if T_guess is not None:
-        e = np.linalg.norm(project_points(points_world, T_guess, K) - xy, axis=1)
-        guess_inl = np.nan_to_num(e, nan=np.inf) <= reproj_px
+        guess_inl = reprojection_error(points_world, T_guess, K, xy) <= reproj_px
         if best_T is None or guess_inl.sum() > inl.sum():
             best_T, inl = T_guess.copy(), guess_inl
     if best_T is None or inl.sum() < 4:
@@ -85,8 +88,7 @@ def pnp_ransac(points_world: np.ndarray, xy: np.ndarray, K: np.ndarray, *, repro
         tvec = best_T[:3, 3].reshape(3, 1).copy()
         rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, None, rvec, tvec)
         best_T = _to_T(rvec, tvec)
-        e = np.linalg.norm(project_points(points_world, best_T, K) - xy, axis=1)
-        new_inl = np.nan_to_num(e, nan=np.inf) <= reproj_px
+        new_inl = reprojection_error(points_world, best_T, K, xy) <= reproj_px
         if new_inl.sum() < 4:
             break
         inl = new_inl
