@@ -569,5 +569,8 @@ def test_configs_load_and_reject_unknown_keys(tmp_path):
     f.write_text("mode: fast\n")
     with pytest.raises(DataError, match="mode"):
         load_config(f)
+    f.write_text("init:\n  min_position_inliers: 2\n")  # 4 equations for 3 unknowns leave no outlier check
+    with pytest.raises(DataError, match="init.min_position_inliers"):
+        load_config(f)
     with pytest.raises(DataError, match="unknown SLAM config"):
         load_config("nonexistent")

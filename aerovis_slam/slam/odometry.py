@@ -312,8 +312,9 @@ class StereoInertialOdometry:
             # and independent of gravity), the position from the 3D-2D inliers of both cameras with
             # that rotation fixed. A full single-camera PnP over a narrow field of view confuses small
             # rotations with translations, and its jitter would spoil the visual-inertial alignment.
+            # With the rotation fixed, fewer inliers suffice (init.min_position_inliers).
             state = pred
-            if visual:
+            if n_inl >= cfg.init.min_position_inliers:
                 cams = self.cams
                 p, err = position_given_rotation(
                     self.lmap.pos[obs.landmark], obs.xy, obs.cam, [cams.left.K, cams.right.K],
@@ -321,7 +322,7 @@ class StereoInertialOdometry:
                 keep = err <= cfg.ransac.pnp_reproj_px
                 obs, obs_kp = obs.subset(keep), obs_kp[keep]
                 dt = max((tau - self.t_last) * 1e-6, 1e-6)
-                if len(obs) >= cfg.ransac.min_inliers:
+                if len(obs) >= cfg.init.min_position_inliers:
                     T = pred.T_world_body.copy()
                     T[:3, 3] = p
                     v = (p - self.state.T_world_body[:3, 3]) / dt
