@@ -118,6 +118,7 @@ class StereoInertialOdometry:
         self.t_last: int | None = None
         self.state: NavEstimate | None = None           # current frame state (odometry frame)
         self.initialized = False
+        self.t_initialized: int | None = None           # tau (µs) at which gravity, velocity and biases became known
         self.init_frames: list[tuple[int, np.ndarray]] = []  # (t, T_V_B) tracked before initialisation
         self.t_first: int | None = None
         self.kf_id = -1
@@ -662,4 +663,5 @@ class StereoInertialOdometry:
         self.kf_t = tau
         self.kf_keypoints = kpL
         self.initialized = True
+        self.t_initialized = int(tau)
         self.init_frames = []

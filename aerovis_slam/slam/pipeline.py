@@ -72,7 +72,8 @@ class SlamResult:
         warnings: distinct warnings with repeat counts. status: ``ok`` | ``failed: ...`` | ``stopped: ...``.
         complete: False when stopped early or failed (the trajectory is partial).
         mode, detector, config: what ran. keyframes: keyframes created. tracked: (N,) bool visual tracking.
-        info: counters (events, dropped by the rate cap, IMU gaps, landmarks, loop corrections applied).
+        info: counters (events, dropped by the rate cap, IMU gaps, landmarks, loop corrections applied),
+            ``initialized`` and ``t_initialized_us`` (when the visual-inertial initialisation succeeded).
     """
 
     t_us: np.ndarray
@@ -290,6 +291,7 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
         "loop_corrections_applied": odo.loop_corrections,
         "backend_qr_fallbacks": odo.smoother.qr_fallbacks,
         "initialized": odo.initialized,
+        "t_initialized_us": odo.t_initialized,  # outputs before it are vision-only (gyro rotation, no gravity yet)
         "resolution": [cams.left.width, cams.left.height],
         "t_begin_us": int(t_begin), "t_end_us": int(t_end),
     }
