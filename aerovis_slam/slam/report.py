@@ -154,7 +154,8 @@ def _finite(x):
 
 
 def plot_trajectory(path: str | os.PathLike, gt: PoseSamples | None, ate_result: dict | None, *,
-                    est: PoseSamples | None = None, title: str = "", loop_times_s: list[float] | None = None) -> Path:
+                    est: PoseSamples | None = None, title: str = "", loop_times_s: list[float] | None = None,
+                    init_time_s: float | None = None) -> Path:
     """``traj.png``: top view (x-y) of the aligned estimate against the ground truth, and the
     translation error over time. Written atomically.
 
@@ -163,6 +164,8 @@ def plot_trajectory(path: str | os.PathLike, gt: PoseSamples | None, ate_result:
         ate_result: :func:`~aerovis_slam.slam.trajectory.ate` output with its arrays (None: the raw
             estimate ``est`` is drawn without errors).
         loop_times_s: times of loop closures (vertical lines on the error plot).
+        init_time_s: time of the visual-inertial initialisation; the error plot shades what comes
+            before it (vision-only outputs, no gravity yet).
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -181,8 +184,12 @@ def plot_trajectory(path: str | os.PathLike, gt: PoseSamples | None, ate_result:
         ax1.plot(t - t[0], np.asarray(ate_result["error_m"]) * 100, "-", color="tab:red", lw=1.0)
         ax1.set_title(f"ATE RMSE {ate_result['ate_rmse_m'] * 100:.2f} cm"
                       + (f" ({ate_result['ate_pct']:.2f} % of {ate_result['path_length_m']:.2f} m)" if ate_result.get("ate_pct") is not None else ""))
-        for tl in loop_times_s or []:
-            ax1.axvline(tl - t[0], color="tab:blue", lw=0.8, ls="--")
+        for i, tl in enumerate(loop_times_s or []):
+            ax1.axvline(tl - t[0], color="tab:blue", lw=0.8, ls="--", label="loop closure" if i == 0 else None)
+        if init_time_s is not None and init_time_s > t[0]:
+            ax1.axvspan(0.0, init_time_s - t[0], color="0.85", label="before initialisation")
+        if loop_times_s or (init_time_s is not None and init_time_s > t[0]):
+            ax1.legend(loc="upper right", fontsize=8)
     else:
         if gt is not None and len(gt):
             ax0.plot(gt.pose[:, 0], gt.pose[:, 1], "k-", lw=1.5, label="ground truth")
