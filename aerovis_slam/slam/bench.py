@@ -144,7 +144,7 @@ def run_sequence(sequence: str | os.PathLike, detector, config, out_dir: str | o
     if plot:
         loops = [c["t_s"] for c in (extra["loop"] or {}).get("closures", [])]
         title = f"{sequence.stem} | {metrics['detector']} | {mode}" + ("" if complete else " | PARTIAL")
-        t_init = (getattr(result, "info", None) or {}).get("t_initialized_us")
+        t_init = (extra["pipeline_info"] or {}).get("t_initialized_us")
         plot_trajectory(out / PLOT_FILE, gt, ate_se3, est=PoseSamples(result.t_us, result.pose7), title=title, loop_times_s=loops,
                         init_time_s=None if t_init is None else t_init / 1e6)
     return metrics

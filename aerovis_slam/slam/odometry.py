@@ -117,7 +117,6 @@ class StereoInertialOdometry:
         self.frame = -1
         self.t_last: int | None = None
         self.state: NavEstimate | None = None           # current frame state (odometry frame)
-        self.initialized = False
         self.t_initialized: int | None = None           # tau (µs) at which gravity, velocity and biases became known
         self.init_frames: list[tuple[int, np.ndarray]] = []  # (t, T_V_B) tracked before initialisation
         self.t_first: int | None = None
@@ -143,6 +142,11 @@ class StereoInertialOdometry:
         self._keypoint_noise = np.random.default_rng(cfg.detector.keypoint_noise_seed)
 
     # ------------------------------------------------------------------------------------------
+    @property
+    def initialized(self) -> bool:
+        """Gravity, velocity and biases are known (the smoother runs)."""
+        return self.t_initialized is not None
+
     def _detect(self, detector, batch: np.ndarray) -> tuple[Keypoints, Keypoints]:
         k = self.cfg.detector.top_k
         kps = detector.detect(batch, top_k=k) if k is not None else detector.detect(batch)
@@ -662,6 +666,5 @@ class StereoInertialOdometry:
         self.pim = new_preintegration(self.params, bias)
         self.kf_t = tau
         self.kf_keypoints = kpL
-        self.initialized = True
         self.t_initialized = int(tau)
         self.init_frames = []

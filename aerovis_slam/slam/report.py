@@ -186,9 +186,10 @@ def plot_trajectory(path: str | os.PathLike, gt: PoseSamples | None, ate_result:
                       + (f" ({ate_result['ate_pct']:.2f} % of {ate_result['path_length_m']:.2f} m)" if ate_result.get("ate_pct") is not None else ""))
         for i, tl in enumerate(loop_times_s or []):
             ax1.axvline(tl - t[0], color="tab:blue", lw=0.8, ls="--", label="loop closure" if i == 0 else None)
-        if init_time_s is not None and init_time_s > t[0]:
+        shade_init = init_time_s is not None and init_time_s > t[0]
+        if shade_init:
             ax1.axvspan(0.0, init_time_s - t[0], color="0.85", label="before initialisation")
-        if loop_times_s or (init_time_s is not None and init_time_s > t[0]):
+        if loop_times_s or shade_init:
             ax1.legend(loc="upper right", fontsize=8)
     else:
         if gt is not None and len(gt):
