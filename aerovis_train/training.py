@@ -49,7 +49,8 @@ def sequences_from_config(data_cfg) -> tuple[list[Path], list[Path]]:
     if data_cfg.get("preset"):
         from aerovis_slam.sim.cache import ensure_preset
 
-        folder = ensure_preset(data_cfg.preset, data_cfg.get("cache_dir"), seed=int(data_cfg.get("seed", 0)))
+        folder = ensure_preset(data_cfg.preset, data_cfg.get("cache_dir"), seed=int(data_cfg.get("seed", 0)),
+                               workers=data_cfg.get("sim_workers"))
         paths = sorted(Path(folder).glob("*.h5"))
         n_val = int(data_cfg.get("val_sequences", 2))
         if len(paths) <= n_val:

@@ -30,7 +30,8 @@ def cache_root() -> Path:
     return (Path(env).expanduser() if env else Path.home() / ".cache" / "aerovis") / "sim"
 
 
-def ensure_preset(name: str, cache_dir: str | None = None, seed: int = 0, *, progress: bool = True) -> Path:
+def ensure_preset(name: str, cache_dir: str | None = None, seed: int = 0, *, progress: bool = True,
+                  workers: int | None = None) -> Path:
     """The folder of preset ``name`` generated with ``seed``, generating it on first use.
 
     Args:
@@ -38,6 +39,7 @@ def ensure_preset(name: str, cache_dir: str | None = None, seed: int = 0, *, pro
         cache_dir: folder that holds ``<name>-seed<seed>-v<SIM_VERSION>/`` (default :func:`cache_root`).
         seed: preset seed.
         progress: show progress bars while generating.
+        workers: sequences generated at a time, one process each (None: one per CPU core).
 
     Returns:
         The complete folder (``*.h5`` and ``summary.json``).
@@ -60,7 +62,7 @@ def ensure_preset(name: str, cache_dir: str | None = None, seed: int = 0, *, pro
     except OSError as exc:
         raise DataError(root, f"cache folder is not writable ({exc.strerror})") from None
     try:
-        run_preset(name, tmp, seed=seed, progress=progress)
+        run_preset(name, tmp, seed=seed, progress=progress, workers=workers)
         os.chmod(tmp, 0o755)  # mkdtemp makes it private; the finished cache is ordinary shared data
         try:
             os.rename(tmp, final)

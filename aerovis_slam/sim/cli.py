@@ -2,7 +2,7 @@
 
 Usage::
 
-    aerovis-sim PRESET OUT_DIR [--seed N] [--duration S] [--only NAME ...] [--textures IMG ...]
+    aerovis-sim PRESET OUT_DIR [--seed N] [--duration S] [--only NAME ...] [--textures IMG ...] [--workers N]
     aerovis-sim video OUT_DIR --images DIR [--fps F] [--threshold C] [--seed N] [--gt POSES.txt]
 
 ``PRESET`` is ``train``, ``bench`` or ``tiny`` (see :mod:`aerovis_slam.sim.presets`). One
@@ -11,14 +11,20 @@ complete), a summary line per sequence is printed, and ``OUT_DIR/summary.json`` 
 ``video`` turns a folder of images (sorted by name; timestamps from ``--fps`` or a
 ``timestamps.txt`` of seconds beside them) into events, written with the frames as
 ``OUT_DIR/<folder>.h5``. Errors print one line (no traceback) and exit with status 2.
+
+``--workers N`` simulates N sequences at a time in separate processes (default: one per CPU core,
+at most one per sequence). Every sequence draws only on its own seeds, so the files do not depend
+on N or on the order in which the sequences finish.
 """
 
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import os
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 from tqdm import tqdm
@@ -27,13 +33,31 @@ from ..errors import DataError
 from ..fileio import atomic_write_json, prepare_out_dir
 
 
+def default_workers(n_sequences: int) -> int:
+    """One process per CPU core available to this process, at most one per sequence."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, n_sequences))
+
+
+def _write_one(spec, path: str) -> dict:
+    """Worker-process entry point: simulate one sequence (a module-level function, so it pickles)."""
+    from .simulator import write_sequence
+
+    return write_sequence(spec, path, progress=False)
+
+
 def run_preset(name: str, out_dir: str | os.PathLike, *, seed: int = 0, duration: float | None = None,
                only: list[str] | None = None, textures: list[str] | None = None, progress: bool = True,
-               log=None) -> dict:
+               log=None, workers: int | None = None) -> dict:
     """Generate a preset into ``out_dir``; returns (and writes) the summary dict.
 
     ``textures`` (image files) replace the procedural poster textures of every scene;
-    ``log`` (e.g. ``print``) receives one summary line per sequence.
+    ``log`` (e.g. ``print``) receives one summary line per sequence; ``workers`` sequences are
+    simulated at a time in separate processes (None: :func:`default_workers`). The summary lists the
+    sequences in preset order whatever the order they finish in.
 
     Raises:
         DataError: unknown preset or sequence name, unwritable folder, bad rig or texture.
@@ -54,20 +78,38 @@ def run_preset(name: str, out_dir: str | os.PathLike, *, seed: int = 0, duration
             load_texture_image(tex)
         for s in specs:
             s.user_textures = [str(Path(t).resolve()) for t in textures]
+    workers = default_workers(len(specs)) if workers is None else int(workers)
+    if workers < 1:
+        raise DataError(None, f"--workers must be at least 1, got {workers}")
     out = Path(out_dir)
     prepare_out_dir(out)
     t0 = time.perf_counter()
-    rows = []
-    bar = tqdm(specs, desc=f"aerovis-sim {name}", unit="seq", disable=not progress)
-    for spec in bar:
-        bar.set_postfix_str(spec.name)
-        row = write_sequence(spec, out / f"{spec.name}.h5", progress=progress)
-        row["path"] = f"{spec.name}.h5"
-        rows.append(row)
-        msg = (f"{spec.name}: {row['events']:,} events, {row['duration_s']:.1f} s, "
-               f"{row['event_rate_mev_s']:.2f} Mev/s, wall {row['wall_s']:.1f} s")
+    rows: list[dict | None] = [None] * len(specs)
+
+    def done(i: int, row: dict) -> None:
+        row["path"] = f"{specs[i].name}.h5"
+        rows[i] = row
         if log is not None:
-            log(msg)
+            log(f"{specs[i].name}: {row['events']:,} events, {row['duration_s']:.1f} s, "
+                f"{row['event_rate_mev_s']:.2f} Mev/s, wall {row['wall_s']:.1f} s")
+
+    if workers == 1 or len(specs) == 1:
+        bar = tqdm(specs, desc=f"aerovis-sim {name}", unit="seq", disable=not progress)
+        for i, spec in enumerate(bar):
+            bar.set_postfix_str(spec.name)
+            done(i, write_sequence(spec, out / f"{spec.name}.h5", progress=progress))
+    else:
+        # Processes, not threads: rendering and event generation hold the GIL for most of their time.
+        # "spawn" because the caller (a training job) may hold threads that a fork would copy mid-state.
+        with ProcessPoolExecutor(max_workers=min(workers, len(specs)), mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = {pool.submit(_write_one, spec, str(out / f"{spec.name}.h5")): i for i, spec in enumerate(specs)}
+            try:
+                for fut in tqdm(as_completed(futures), total=len(futures), desc=f"aerovis-sim {name} ({workers} processes)",
+                                unit="seq", disable=not progress):
+                    done(futures[fut], fut.result())
+            except BaseException:
+                pool.shutdown(wait=True, cancel_futures=True)  # finished sequences stay; none is half-written
+                raise
     summary = {"preset": name, "seed": seed, "duration_override_s": duration, "sequences": rows,
                "total_events": sum(r["events"] for r in rows),
                "total_duration_s": sum(r["duration_s"] for r in rows),
@@ -155,6 +197,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fps", type=float, default=None, help="video mode: frame rate (else timestamps.txt)")
     parser.add_argument("--threshold", type=float, default=0.2, help="video mode: contrast threshold")
     parser.add_argument("--gt", default=None, help="video mode: TUM-format ground-truth poses (seconds)")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="sequences simulated at a time, one process each (default: one per CPU core)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars (summary lines stay)")
     args = parser.parse_args(argv)
     try:
@@ -165,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{res['path']}: {res['events']:,} events from {res['frames']} frames over {res['duration_s']:.2f} s")
             return 0
         summary = run_preset(args.preset, args.out_dir, seed=args.seed, duration=args.duration, only=args.only,
-                             textures=args.textures, progress=not args.quiet, log=tqdm.write)
+                             textures=args.textures, progress=not args.quiet, log=tqdm.write, workers=args.workers)
     except DataError as exc:
         print(f"aerovis-sim: error: {exc}", file=sys.stderr)
         return 2
