@@ -145,6 +145,19 @@ def test_resume_continues_from_last_checkpoint(tmp_path, sim_cache):
     assert json.loads((run / "summary.json").read_text())["steps"] == 4  # 2 restored + 2 new, not 4 new
 
 
+def test_validation_pools_both_cameras_and_warns_when_few_pairs(tmp_path, sim_cache):
+    """The default validation scores cam0 and cam1 of each held-out sequence: with val.max_pairs=3
+    (per sequence and camera) the one tiny validation sequence gives 3 pairs from one camera and 6
+    from both; 6 pairs are below val.min_pairs, which is said once."""
+    one = _train(tmp_path / "one", "data.crop=[40,56]", "+trainer.max_steps=1", "val.cam=cam0", cache=sim_cache)
+    assert one.returncode == 0, one.stderr[-3000:]
+    both = _train(tmp_path / "both", "data.crop=[40,56]", "+trainer.max_steps=1", cache=sim_cache)
+    assert both.returncode == 0, both.stderr[-3000:]
+    pairs = {k: json.loads((tmp_path / k / "metrics.json").read_text())["val_pairs"] for k in ("one", "both")}
+    assert pairs == {"one": 3.0, "both": 6.0}
+    assert both.stderr.count("validation scores only 6 pairs (val.min_pairs=100)") == 1
+
+
 def test_fine_tuning_starts_from_the_given_weights(tmp_path, sim_cache):
     """init_weights=superlite: training starts from the shipped weights (one step at learning rate 0
     leaves every parameter exactly as shipped; BatchNorm's running statistics do move, so buffers are
