@@ -268,8 +268,8 @@ def test_results_page_verdicts(tmp_path):
     # then steps to 1: AUC@10 = (e / (2 N) + 10 - e) / 10, i.e. 49/60 and 38/60, a gain of 11/38 = 28.9 % on every
     # resample, so the interval collapses to that value (the summary rows above are independent inputs)
     pairs = [{"t0_us": t0, "t1_us": t0 + 1} for t0 in (0, 0, 5, 5, 9, 9)]
-    cmp["results"] = {m: [{"sequence": "/c/a.h5", "per_pair": [{**p, "rot_err_deg": e} for p in pairs]}]
-                      for m, e in (("superevent_plus", 2.0), ("superevent", 4.0))}
+    cmp["results"] = {m: [{"sequence": "/c/a.h5", "auc10": a, "pairs": 6, "per_pair": [{**p, "rot_err_deg": e} for p in pairs]}]
+                      for m, e, a in (("superevent_plus", 2.0, 49 / 0.6), ("superevent", 4.0, 38 / 0.6))}
     write_json(tmp_path / "cmp" / "compare.json", cmp)
     sweep = tmp_path / "sweep"
     fake_job(sweep, "0", 30.0, 60.0)
@@ -285,5 +285,8 @@ def test_results_page_verdicts(tmp_path):
     text = (tmp_path / "docs" / "results.md").read_text()
     assert "25.0 % (95 % interval +28.9 to +28.9 %, paired bootstrap over 3 start frames) (paper: +18.7 %)" in text
     assert "**not met** (weakest learned: superevent 32.0 %, strongest classical: orb 33.0 %)" in text
+    # the per-sequence table lists the methods with per-sequence results, in the summary's order
+    assert "| method | a (6 pairs) |\n|---|---:|\n| superevent_plus | 81.7 |\n| superevent | 63.3 |" in text
+    assert "Best on each sequence: a: superevent_plus." in text
     assert "aerovis-eval compare --data bench --onnx-latency --out X" in text and "| 1 | 1 | model.descriptor_dim=128 |" in text
     assert (tmp_path / "docs" / "results_search1_pareto.png").exists() and "(results_search1_pareto.png)" in text

@@ -154,6 +154,28 @@ def section_all(cmp: dict) -> str:
     return "\n".join(lines)
 
 
+def section_per_sequence(cmp: dict) -> str:
+    """AUC@10 of every method on every sequence (the pooled AUC hides where each kind of detector wins)."""
+    results = cmp.get("results") or {}
+    methods = [r["method"] for r in cmp["rows"] if results.get(r["method"])]
+    if not methods:
+        return ""
+    seqs = list(dict.fromkeys(Path(x["sequence"]).stem for m in methods for x in results[m]))
+    auc = {(m, Path(x["sequence"]).stem): x.get("auc10") for m in methods for x in results[m]}
+    pairs = {Path(x["sequence"]).stem: x.get("pairs") for m in methods for x in results[m]}
+    head = [f"{q} ({pairs[q]} pairs)" if pairs.get(q) is not None else q for q in seqs]
+    lines = ["## Per sequence", "", f"Rotation AUC@10 in percent of each method on each sequence, from the same run (`{cmp['command']}`).", "",
+             "| method | " + " | ".join(head) + " |", "|---|" + "---:|" * len(seqs)]
+    lines += [f"| {m} | " + " | ".join(_f(auc.get((m, q))) for q in seqs) + " |" for m in methods]
+    best = []
+    for q in seqs:
+        scored = [(auc[(m, q)], m) for m in methods if auc.get((m, q)) is not None]
+        if scored:
+            best.append(f"{q}: {max(scored)[1]}")
+    lines += ["", "Best on each sequence: " + "; ".join(best) + ".", ""]
+    return "\n".join(lines)
+
+
 def section_ablation(cmp: dict) -> tuple[str, dict]:
     by = _rows_by_method(cmp)
     ne, dt = by.get("superevent_plus"), by.get("superevent")
@@ -289,6 +311,9 @@ def write_results(out: str | os.PathLike, compare: str | os.PathLike | None = No
     if compare:
         cmp = load_compare(compare)
         parts.append(section_all(cmp))
+        per_seq = section_per_sequence(cmp)
+        if per_seq:
+            parts.append(per_seq)
         for fn in (section_ablation, section_lite, section_classical):
             text, v = fn(cmp)
             parts.append(text)
