@@ -446,6 +446,15 @@ def test_pipeline_tracks_a_small_flight(small_flight):
     r = ate(gt, PoseSamples(res.t_us, res.pose7), align="se3")
     assert r["ate_rmse_m"] < 0.06 * r["path_length_m"]
     assert res.keyframes >= 5 and res.tracking_losses == 0
+    # the final trajectory: same times; the vision-only outputs before the initialisation have no
+    # keyframe in the smoother and stay as they were; later ones moved with their keyframes (the
+    # smoother refines a keyframe after its frames were output) and meet the same bound
+    assert res.pose7_final is not None and res.pose7_final.shape == res.pose7.shape
+    pre = res.t_us < res.info["t_initialized_us"]
+    assert pre.any() and np.array_equal(res.pose7_final[pre], res.pose7[pre])
+    assert not np.allclose(res.pose7_final[~pre], res.pose7[~pre])
+    rf = ate(gt, PoseSamples(res.t_us, res.pose7_final), align="se3")
+    assert rf["ate_rmse_m"] < 0.06 * rf["path_length_m"]
     for stage in ("mcts", "detector", "matching", "tracking", "backend", "total"):
         assert len(res.stage_ms[stage]) == len(res.t_us)
 
@@ -538,6 +547,7 @@ def test_stop_event_ends_threads_and_marks_partial(tiny_preset):
                    mode="live", progress=False, stop_event=stop)
     assert not res.complete and res.status.startswith("stopped")
     assert len(res.t_us) == 5 and res.t_us[-1] < 0.9e6
+    assert res.pose7_final is None  # no final trajectory of a run that did not finish
     leftover = [t for t in threading.enumerate() if t.ident not in before and t.name.startswith("aerovis")]
     assert leftover == []
 

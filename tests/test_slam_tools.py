@@ -21,7 +21,7 @@ from aerovis_slam.measurements import PoseSamples
 from aerovis_slam.slam import bench as bench_mod
 from aerovis_slam.slam.cli import main
 from aerovis_slam.slam.loop import LoopCloser, descriptor_vectors, train_vocabulary, vlad
-from aerovis_slam.slam.trajectory import ate, is_partial, read_tum, rpe, write_tum
+from aerovis_slam.slam.trajectory import ate, final_trajectory, is_partial, read_tum, rpe, write_tum
 
 
 # -- helpers -----------------------------------------------------------------------------------
@@ -146,6 +146,34 @@ def test_association_nearest_and_interpolated():
     assert ate(gt, est, align="none", interpolate=True)["ate_rmse_m"] < 1.3e-5
     with pytest.raises(DataError, match="no pose pairs"):
         ate(gt, est, max_diff_s=0.0005)
+
+
+def _T(rotvec, t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = so3_exp(np.asarray(rotvec, float)), t
+    return T
+
+
+def test_final_trajectory_moves_outputs_with_their_keyframes():
+    """Outputs keep their pose relative to their keyframe: when the smoother moves keyframe 1 by D
+    and the pose graph corrects keyframe 2 by C, an output anchored to 1 becomes D-moved exactly,
+    one anchored to 2 becomes C @ K2' @ rel, and an output without keyframe stays as it was."""
+    K1, K2 = _T([0, 0, 0.1], [1, 0, 0]), _T([0.05, 0, 0.3], [2, 1, 0])
+    rel_a, rel_b, rel_c = _T([0, 0.02, 0], [0.1, 0, 0]), _T([0.01, 0, 0], [0.3, 0.05, 0]), _T([0, 0, -0.02], [0.2, 0, 0.01])
+    Tc_live = _T([0, 0, 0.01], [0.02, 0, 0])
+    live = np.stack([_T([0, 0, 0.5], [9, 9, 9]), Tc_live @ K1 @ rel_a, Tc_live @ K1 @ rel_b, Tc_live @ K2 @ rel_c])
+    D = _T([0, 0.01, 0.02], [0.03, -0.02, 0.01])
+    K1_final, K2_final = D @ K1, _T([0.05, 0, 0.31], [2.02, 1, 0])
+    C = _T([0, 0, -0.05], [-0.1, 0.2, 0])
+    out = final_trajectory(live, np.array([-1, 1, 1, 2]), np.stack([np.eye(4), rel_a, rel_b, rel_c]), np.stack([Tc_live] * 4),
+                           {1: K1_final, 2: K2_final}, {2: C})
+    np.testing.assert_array_equal(out[0], live[0])
+    np.testing.assert_allclose(out[1], Tc_live @ D @ K1 @ rel_a, atol=1e-12)  # keyframe 1: no pose-graph correction, the live one
+    np.testing.assert_allclose(invert_T(out[1]) @ out[2], invert_T(rel_a) @ rel_b, atol=1e-12)  # rigid within a keyframe
+    np.testing.assert_allclose(out[3], C @ K2_final @ rel_c, atol=1e-12)
+    # a keyframe the smoother never reported: the output stays live
+    np.testing.assert_array_equal(final_trajectory(live, np.array([-1, 1, 1, 3]), np.stack([np.eye(4), rel_a, rel_b, rel_c]),
+                                                   np.stack([Tc_live] * 4), {1: K1_final})[3], live[3])
 
 
 def test_rpe_known_velocity_and_yaw_rate_errors():
@@ -421,7 +449,8 @@ def _tiny_sequence(path):
 
 
 def _fake_runner(delta: float = 0.01, complete: bool = True, status: str = "ok", seen: dict | None = None):
-    """A stand-in for run_slam with a known result: the GT at 50 Hz with z alternating by +-delta."""
+    """A stand-in for run_slam with a known result: the GT at 50 Hz with z alternating by +-delta;
+    a complete run's final trajectory is the GT itself."""
     def run(sequence, detector, config, *, mode, loop_closer, progress, stop_event):
         if seen is not None:
             seen.update(mode=mode, loop_closer=loop_closer, detector=detector)
@@ -430,7 +459,8 @@ def _fake_runner(delta: float = 0.01, complete: bool = True, status: str = "ok",
         pose[:, 2] += delta * (-1.0) ** np.arange(len(t))
         return types.SimpleNamespace(t_us=t, pose7=pose, latency_ms=np.arange(len(t), dtype=float), wall_s=2.0,
                                      sequence_duration_s=2.0, stage_ms={"detector": [1.0, 2.0, 3.0], "backend": []},
-                                     loop_closures=1, tracking_losses=2, warnings=["burst"], status=status, complete=complete)
+                                     loop_closures=1, tracking_losses=2, warnings=["burst"], status=status, complete=complete,
+                                     pose7_final=helix(t).pose.copy() if complete else None)
     return run
 
 
@@ -460,13 +490,19 @@ def test_cli_run_writes_outputs(tmp_path, capsys, monkeypatch, empty_config):
     assert m["rpe_trans_rmse_m"] is not None and m["path_length_m"] > 0
     back = read_tum(out / "traj.txt")
     assert len(back) == 96 and not is_partial(out / "traj.txt")
+    # the final trajectory (the GT itself here): its own file and an ATE of zero
+    final = read_tum(out / "traj_final.txt")
+    assert np.array_equal(final.t, back.t) and m["final_trajectory_file"] == "traj_final.txt"
+    assert m["final"]["ate_rmse_m"] < 1e-6 and line["ate_pct_final"] == m["final"]["ate_pct"]
     assert (out / "traj.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     # a partial run: flagged file name and header, the old complete trajectory removed
     monkeypatch.setattr(bench_mod, "_run_slam", _fake_runner(complete=False, status="ok", seen=seen))
     assert main(["run", str(seq), "--detector", "orb", "--config", str(empty_config), "--no-loop", "--out", str(out), "--quiet"]) == 0
     assert seen["loop_closer"] is None
     assert not (out / "traj.txt").exists() and is_partial(out / "traj.partial.txt")
+    assert not (out / "traj_final.txt").exists()  # no final trajectory of an unfinished run, none left from before
     assert json.loads((out / "metrics.json").read_text())["complete"] is False
+    assert json.loads((out / "metrics.json").read_text())["final"] is None
     # a failed run still writes its outputs and exits 1
     monkeypatch.setattr(bench_mod, "_run_slam", _fake_runner(status="failed: diverged"))
     assert main(["run", str(seq), "--detector", "orb", "--config", str(empty_config), "--out", str(out), "--quiet"]) == 1
@@ -497,6 +533,8 @@ def test_bench_table_and_json(tmp_path, monkeypatch, empty_config):
                       ("classical-orb", "async"): "failed"}
     table = (tmp_path / "b" / "table.md").read_text()
     assert "| tiny_a |" in table and "failed" in table and "**1.00" in table  # the best ATE (learned, 1 cm) in bold
+    assert "Final trajectory" in table and "| tiny_a | 0.00 % | 0.00 % | 0.00 % |  |" in table
+    assert [r["ate_pct_final"] for r in rows if r["status"] == "ok"] == pytest.approx([0.0] * 3, abs=1e-9)
     s = bench_mod.summarize(rows)
     assert s["learned/sync"]["best_on"] == 1 and s["classical-orb/async"]["ok"] == 0
     # a diverged run is marked as such

@@ -9,7 +9,10 @@
                        [--frames N] [--words K] [--out FILE]
 
 ``run`` writes ``DIR/traj.txt`` (TUM, body frame; ``traj.partial.txt`` with a header flag when the run
-stopped early, e.g. on Ctrl-C), ``DIR/metrics.json`` and ``DIR/traj.png`` and prints one JSON line.
+stopped early, e.g. on Ctrl-C), ``DIR/metrics.json`` and ``DIR/traj.png`` and prints one JSON line;
+a complete run also writes ``DIR/traj_final.txt``, the final trajectory (outputs moved with their
+keyframes' last estimates and the last loop-closure pose graph; its accuracy is ``final`` in
+``metrics.json``).
 Without ``--model`` / ``--detector`` it uses the shipped default bundle (SuperLitE fp32).
 
 ``eval`` compares two TUM files (or a canonical ``.h5``'s ground truth as GT) with evo and prints
@@ -173,6 +176,8 @@ def cmd_run(args) -> int:
     summary["warnings"] = len(metrics.get("warnings", []))
     summary["out"] = metrics.get("out_dir")
     summary["trajectory_file"] = metrics.get("trajectory_file")
+    summary["ate_pct_final"] = (metrics.get("final") or {}).get("ate_pct")
+    summary["final_trajectory_file"] = metrics.get("final_trajectory_file")
     print(json.dumps(summary))
     if stop.is_set():
         return 130

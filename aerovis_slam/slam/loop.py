@@ -452,6 +452,14 @@ class LoopCloser:
         self.last_correction = newest.T_world_body @ invert_T(newest.T_odom)
         return out
 
+    def corrections(self) -> dict[int, np.ndarray]:
+        """Per keyframe, the correction (4, 4) world <- odometry world of the newest pose graph the
+        caller has polled: ``T_world_body = corrections()[k] @ T_odometry`` at keyframe ``k``. Loops
+        move the keyframes before them as well, which the single :attr:`last_correction` of a live
+        output cannot (the final trajectory uses these)."""
+        with self._lock:
+            return {i: kf.T_world_body @ invert_T(kf.T_odom) for i, kf in self._keyframes.items()}
+
     def wait_idle(self, timeout: float | None = None) -> bool:
         """Block until no optimisation is queued or running (e.g. at the end of a run); True if idle."""
         deadline = None if timeout is None else time.monotonic() + timeout

@@ -68,6 +68,11 @@ class FrameResult:
         t_us: the frame time ``tau``. T_world_body: (4, 4) output pose (loop-corrected).
         tracked: visually tracked (else IMU-only). keyframe: a keyframe was created.
         inliers: 3D-2D inliers (both cameras). timings_ms: per-stage durations.
+        anchor_kf: the keyframe the pose was estimated against (-1 before the initialisation).
+        T_kf_body: (4, 4) the pose in that keyframe's body frame (None without an anchor).
+        T_corr: (4, 4) the loop correction applied to the output (world <- odometry world).
+        The last three let :func:`~aerovis_slam.slam.trajectory.final_trajectory` move the output
+        with its keyframe when the smoother or the pose graph moves the keyframe later.
     """
 
     t_us: int
@@ -76,6 +81,9 @@ class FrameResult:
     keyframe: bool
     inliers: int
     timings_ms: dict[str, float] = field(default_factory=dict)
+    anchor_kf: int = -1
+    T_kf_body: np.ndarray | None = None
+    T_corr: np.ndarray | None = None
 
 
 class WarningLog:
@@ -136,6 +144,7 @@ class StereoInertialOdometry:
         self.kf_odom: dict[int, np.ndarray] = {}       # keyframe id -> T_world_body (odometry) at insertion
         self.kf_loop_rows: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # window keyframe -> (keypoint rows, landmark ids) given to the loop closer
         self.T_corr = np.eye(4)                         # loop-closure correction: world <- odometry world
+        self.kf_smoothed: dict[int, np.ndarray] = {}    # keyframe id -> last smoother estimate T_world_body
         self.loop_corrections = 0
         self.rotate_outputs = None                      # set at initialisation: R_world_vision to apply to earlier outputs
         self._min_dt = 1.0 / cfg.max_rate_hz
@@ -379,7 +388,11 @@ class StereoInertialOdometry:
         self._poll_loop_closer()
         timings["loop"] = (time.perf_counter() - t4) * 1e3
         T_out = self.T_corr @ self.state.T_world_body
-        return FrameResult(tau, T_out, tracked, is_kf, n_inl, timings)
+        anchor, T_kf_body = -1, None
+        if self.initialized and self.smoother.kf_ids:
+            anchor = self.smoother.kf_ids[-1]
+            T_kf_body = invert_T(self.smoother.estimates[anchor].T_world_body) @ self.state.T_world_body
+        return FrameResult(tau, T_out, tracked, is_kf, n_inl, timings, anchor, T_kf_body, self.T_corr.copy())
 
     def _imu_only_frame(self, tau: int, why: str) -> FrameResult:
         """A frame without visual information: IMU propagation, failure bookkeeping, loop corrections."""
@@ -553,7 +566,14 @@ class StereoInertialOdometry:
                 est = state
         self.kf_state = est
         self.pim = new_preintegration(self.params, est.bias)
+        self._remember_window()
         return est
+
+    def _remember_window(self) -> None:
+        """Keep the smoother's estimate of every keyframe in its window: the last one a keyframe
+        gets before it is marginalised is its final estimate (see ``final_trajectory``)."""
+        for k, e in self.smoother.estimates.items():
+            self.kf_smoothed[k] = e.T_world_body.copy()
 
     def _restart_smoother(self, kf: int, tau: int, state: NavEstimate, sigma_vel: float | None = None) -> None:
         b = self.cfg.backend
@@ -563,6 +583,7 @@ class StereoInertialOdometry:
                                  sigma_yaw_rad=np.radians(1.0), sigma_pos_m=0.01, sigma_vel=sigma_vel,
                                  sigma_acc_bias=b.prior_acc_bias, sigma_gyro_bias=b.prior_gyro_bias)
         self.kf_state = state
+        self._remember_window()
 
     def _to_loop_closer(self, kf, tau, kpL, obs, obs_kp, new_ids, rowsL) -> None:
         T_wb = self.kf_state.T_world_body
@@ -663,6 +684,7 @@ class StereoInertialOdometry:
                                  sigma_vel=max(b.prior_velocity_m_s, sigmas[1]) if from_vision else 0.5,
                                  sigma_acc_bias=b.prior_acc_bias, sigma_gyro_bias=b.prior_gyro_bias)
         self.kf_state = self.state
+        self._remember_window()
         self.pim = new_preintegration(self.params, bias)
         self.kf_t = tau
         self.kf_keypoints = kpL

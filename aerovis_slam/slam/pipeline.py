@@ -49,6 +49,7 @@ from .config import MODES, SlamConfig, load_config
 from .imu import ImuStream
 from .odometry import StereoInertialOdometry, WarningLog
 from .preprocessing import EventFeeder, EventReader, LivePreprocessor
+from .trajectory import final_trajectory
 
 __all__ = ["SlamResult", "load_config", "run_slam"]
 
@@ -74,6 +75,9 @@ class SlamResult:
         mode, detector, config: what ran. keyframes: keyframes created. tracked: (N,) bool visual tracking.
         info: counters (events, dropped by the rate cap, IMU gaps, landmarks, loop corrections applied),
             ``initialized`` and ``t_initialized_us`` (when the visual-inertial initialisation succeeded).
+        pose7_final: (N, 7) the final trajectory at the same times (every output moved with its
+            keyframe's last smoother estimate and the last pose graph, see
+            :func:`~aerovis_slam.slam.trajectory.final_trajectory`); None when the run did not complete.
     """
 
     t_us: np.ndarray
@@ -93,11 +97,26 @@ class SlamResult:
     keyframes: int = 0
     tracked: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     info: dict = field(default_factory=dict)
+    pose7_final: np.ndarray | None = None
 
     @property
     def rate_hz(self) -> float:
         """Pose outputs per second of recording."""
         return len(self.t_us) / self.sequence_duration_s if self.sequence_duration_s > 0 else 0.0
+
+
+def final_poses(odo, loop_closer, T_out: list[np.ndarray], anchors: list[tuple]) -> np.ndarray:
+    """(N, 4, 4) final trajectory of a finished run (see ``SlamResult.pose7_final``): waits (up to
+    10 s) for a pose-graph optimisation still running, so that a loop found at the end counts too."""
+    corrections = None
+    if loop_closer is not None:
+        loop_closer.wait_idle(timeout=10.0)
+        loop_closer.poll()
+        corrections = loop_closer.corrections()
+    eye = np.eye(4)
+    return final_trajectory(np.stack(T_out), np.array([a[0] for a in anchors], np.int64),
+                            np.stack([eye if a[1] is None else a[1] for a in anchors]),
+                            np.stack([eye if a[2] is None else a[2] for a in anchors]), odo.kf_smoothed, corrections)
 
 
 def _open_inputs(path: Path):
@@ -172,10 +191,13 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
     status, complete = "ok", True
     failure_trace = None
     reader = live = None
+    T_final = None
     bar = tqdm(total=round((t_end - t_begin) * 1e-6, 3), unit="s", desc=f"slam {path.stem} ({mode})", disable=not progress,
                leave=False, file=sys.stderr, bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} s [{elapsed}<{remaining}]")
     wall0 = time.perf_counter()
     shown = t_begin
+
+    anchors: list[tuple] = []  # per output: its keyframe, its pose in that keyframe, the live loop correction
 
     def record(res, tau: int, latency_us: float, pre_ms: float, mcts_ms: float, proc_ms: float):
         nonlocal shown
@@ -185,6 +207,7 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
             odo.rotate_outputs = None
         t_out.append(int(tau))
         T_out.append(res.T_world_body)
+        anchors.append((res.anchor_kf, res.T_kf_body, res.T_corr))
         lat.append(latency_us / 1000.0)
         tracked.append(bool(res.tracked))
         stages["preprocess"].append(pre_ms)
@@ -266,6 +289,8 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
                 stages["preprocess"] = [live.busy_s * 1e3 / max(len(t_out), 1)] * len(t_out)
         if stop_event.is_set():
             status, complete = "stopped: stop_event set", False
+        elif T_out:
+            T_final = final_poses(odo, loop_closer, T_out, anchors)
     except KeyboardInterrupt:
         status, complete = "stopped: interrupted (KeyboardInterrupt)", False
     except Exception as exc:  # the run ends cleanly and reports; input errors were raised before
@@ -283,6 +308,7 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
         bar.close()
     wall = time.perf_counter() - wall0
     pose7 = matrix_to_pose7(np.stack(T_out)) if T_out else np.zeros((0, 7))
+    pose7_final = matrix_to_pose7(T_final) if (complete and T_final is not None) else None
     info = {
         "events": int(sum(feeder.events_in)) if "feeder" in locals() else 0,
         "dropped_rate_cap": int(feeder.dropped_rate_cap) if "feeder" in locals() else 0,
@@ -303,5 +329,5 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
         loop_closures=int(getattr(loop_closer, "n_closures", 0)) if loop_closer is not None else 0,
         tracking_losses=odo.tracking_losses, warnings=log.as_list(), status=status, complete=complete, mode=mode,
         detector=str(getattr(detector, "name", type(detector).__name__)), config=config.name, keyframes=odo.n_keyframes,
-        tracked=np.asarray(tracked, bool), info=info)
+        tracked=np.asarray(tracked, bool), info=info, pose7_final=pose7_final)
 

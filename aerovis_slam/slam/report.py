@@ -104,6 +104,7 @@ def compute_metrics(result, gt: PoseSamples | None, *, sequence: str | os.PathLi
         "tracking_losses": int(result.tracking_losses),
         "stages": stage_summary(result.stage_ms),
         "warnings": warnings,
+        "final": None,  # the final trajectory's accuracy (pipeline.SlamResult.pose7_final), when the run completed
     }
     ate_se3 = None
     if gt is None or len(gt) == 0:
@@ -129,6 +130,14 @@ def compute_metrics(result, gt: PoseSamples | None, *, sequence: str | os.PathLi
             span_s = ate_se3["duration_s"]
             delta = rpe_delta_s if span_s >= 2 * rpe_delta_s else max(0.05, round(span_s / 4 / 0.05) * 0.05)
             m.update(rpe(gt, est, delta_s=delta))
+            final = getattr(result, "pose7_final", None)
+            if final is not None:
+                # the same alignment and RPE of the final trajectory (same times as the live outputs)
+                est_f = PoseSamples(t_us, np.asarray(final, np.float64).reshape(-1, 7))
+                rf = json_ready(ate(gt, est_f, align="se3", interpolate=True))
+                rpe_f = rpe(gt, est_f, delta_s=delta)
+                m["final"] = {"ate_rmse_m": rf["ate_rmse_m"], "ate_pct": rf["ate_pct"], "ate_max_m": rf["ate_max_m"],
+                              "rpe_trans_rmse_m": rpe_f["rpe_trans_rmse_m"], "rpe_rot_rmse_deg": rpe_f["rpe_rot_rmse_deg"]}
     if extra:
         m.update(extra)
     return m, ate_se3

@@ -376,6 +376,40 @@ def rpe(ref: PoseSamples, est: PoseSamples, *, delta_s: float = 1.0, step_s: flo
     return out
 
 
+def final_trajectory(T_live: np.ndarray, anchor_kf: np.ndarray, T_kf_body: np.ndarray, T_corr_live: np.ndarray,
+                     kf_poses: dict[int, np.ndarray], kf_corrections: dict[int, np.ndarray] | None = None) -> np.ndarray:
+    """The final trajectory: every output re-anchored to its keyframe's last estimate.
+
+    A live output is the frame's tracked pose against the newest keyframe as the smoother saw that
+    keyframe then; later smoother updates (until the keyframe leaves the window) and later loop
+    closures move the keyframe, and the frame should move with it. OKVIS2 writes such a "final"
+    trajectory beside the real-time one; the live outputs stay the measure of what a robot gets.
+
+    Args:
+        T_live: (N, 4, 4) live ``T_world_body`` outputs (loop correction of their time applied).
+        anchor_kf: (N,) keyframe id each output was tracked against; -1: none (before the
+            visual-inertial initialisation), the output is kept as it is.
+        T_kf_body: (N, 4, 4) each output's pose in its keyframe's body frame, at output time.
+        T_corr_live: (N, 4, 4) the loop correction (world <- odometry world) applied at output time.
+        kf_poses: keyframe id -> its last smoother estimate ``T_world_body`` (odometry world).
+        kf_corrections: keyframe id -> its correction from the final pose graph (world <- odometry
+            world, exact at that keyframe); keyframes without one keep the live correction.
+
+    Returns:
+        (N, 4, 4) final ``T_world_body``; outputs whose keyframe is unknown are the live ones.
+    """
+    T_live = np.asarray(T_live, np.float64)
+    out = T_live.copy()
+    kf_corrections = kf_corrections or {}
+    for i, k in enumerate(np.asarray(anchor_kf, np.int64)):
+        k = int(k)
+        if k < 0 or k not in kf_poses:
+            continue
+        C = kf_corrections.get(k, T_corr_live[i])
+        out[i] = C @ kf_poses[k] @ T_kf_body[i]
+    return out
+
+
 def _runs(t: np.ndarray, step: int) -> list[np.ndarray]:
     """Index runs of consecutive grid times (a missing grid point splits a run)."""
     if len(t) == 0:
