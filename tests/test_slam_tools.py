@@ -282,6 +282,14 @@ def test_loop_closure_corrects_drift_in_background(vocabulary):
     # while the odometry chain's uncertainty is ~7 cm: the corrected end should sit within a few cm,
     # far below the 27 cm of open-loop drift (measured 3 cm; 25 % leaves room for noise).
     assert final < 0.25 * drift
+    # per-keyframe corrections (the final trajectory's): applied to the odometry they give the corrected
+    # poses, the loop's correction reaching back to keyframes before it (halfway round: moved too)
+    corr = closer.corrections()
+    _, odom = drive(None)
+    assert sorted(corr) == list(range(66))
+    np.testing.assert_allclose(corr[65] @ odom[65], est[65], atol=1e-9)
+    np.testing.assert_allclose(corr[33] @ odom[33], est[33], atol=1e-9)
+    assert np.linalg.norm(corr[33][:3, 3]) > 0.01
     thread = closer._thread
     closer.close()
     closer.close()  # idempotent
