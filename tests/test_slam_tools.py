@@ -483,6 +483,9 @@ def test_cli_run_writes_outputs(tmp_path, capsys, monkeypatch, empty_config):
     seq = _tiny_sequence(tmp_path / "seq.h5")
     seen: dict = {}
     monkeypatch.setattr(bench_mod, "_run_slam", _fake_runner(seen=seen))
+    plotted: dict = {}
+    draw = bench_mod.plot_trajectory
+    monkeypatch.setattr(bench_mod, "plot_trajectory", lambda *a, **k: (plotted.update(k), draw(*a, **k))[1])
     out = tmp_path / "out"
     rc = main(["run", str(seq), "--detector", "orb", "--config", str(empty_config), "--mode", "async", "--out", str(out), "--quiet"])
     assert rc == 0
@@ -503,6 +506,7 @@ def test_cli_run_writes_outputs(tmp_path, capsys, monkeypatch, empty_config):
     assert np.array_equal(final.t, back.t) and m["final_trajectory_file"] == "traj_final.txt"
     assert m["final"]["ate_rmse_m"] < 1e-6 and line["ate_pct_final"] == m["final"]["ate_pct"]
     assert (out / "traj.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert plotted["final_result"]["ate_rmse_m"] < 1e-6  # traj.png draws the final trajectory too
     # a partial run: flagged file name and header, the old complete trajectory removed
     monkeypatch.setattr(bench_mod, "_run_slam", _fake_runner(complete=False, status="ok", seen=seen))
     assert main(["run", str(seq), "--detector", "orb", "--config", str(empty_config), "--no-loop", "--out", str(out), "--quiet"]) == 0

@@ -35,7 +35,7 @@ from ..errors import DataError
 from ..measurements import PoseSamples
 from .report import compute_metrics, plot_trajectory, write_metrics
 from ..fileio import atomic_write_text, prepare_out_dir
-from .trajectory import write_tum
+from .trajectory import ate, write_tum
 
 TRAJ_FILE = "traj.txt"
 FINAL_TRAJ_FILE = "traj_final.txt"  # complete runs only: outputs re-anchored to their keyframes' final estimates
@@ -152,8 +152,11 @@ def run_sequence(sequence: str | os.PathLike, detector, config, out_dir: str | o
         loops = [c["t_s"] for c in (extra["loop"] or {}).get("closures", [])]
         title = f"{sequence.stem} | {metrics['detector']} | {mode}" + ("" if complete else " | PARTIAL")
         t_init = (extra["pipeline_info"] or {}).get("t_initialized_us")
+        final = None
+        if ate_se3 is not None and getattr(result, "pose7_final", None) is not None:
+            final = ate(gt, PoseSamples(result.t_us, result.pose7_final), align="se3", interpolate=True)
         plot_trajectory(out / PLOT_FILE, gt, ate_se3, est=PoseSamples(result.t_us, result.pose7), title=title, loop_times_s=loops,
-                        init_time_s=None if t_init is None else t_init / 1e6)
+                        init_time_s=None if t_init is None else t_init / 1e6, final_result=final)
     return metrics
 
 

@@ -164,7 +164,7 @@ def _finite(x):
 
 def plot_trajectory(path: str | os.PathLike, gt: PoseSamples | None, ate_result: dict | None, *,
                     est: PoseSamples | None = None, title: str = "", loop_times_s: list[float] | None = None,
-                    init_time_s: float | None = None) -> Path:
+                    init_time_s: float | None = None, final_result: dict | None = None) -> Path:
     """``traj.png``: top view (x-y) of the aligned estimate against the ground truth, and the
     translation error over time. Written atomically.
 
@@ -175,6 +175,7 @@ def plot_trajectory(path: str | os.PathLike, gt: PoseSamples | None, ate_result:
         loop_times_s: times of loop closures (vertical lines on the error plot).
         init_time_s: time of the visual-inertial initialisation; the error plot shades what comes
             before it (vision-only outputs, no gravity yet).
+        final_result: the same for the final trajectory (``traj_final.txt``), drawn dashed.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -190,15 +191,21 @@ def plot_trajectory(path: str | os.PathLike, gt: PoseSamples | None, ate_result:
         e = ate_result["est_aligned"]
         ax0.plot(e[:, 0], e[:, 1], "-", color="tab:red", lw=1.0, label="estimate (SE(3)-aligned)")
         ax0.plot(e[:1, 0], e[:1, 1], "o", color="tab:green", label="start")
-        ax1.plot(t - t[0], np.asarray(ate_result["error_m"]) * 100, "-", color="tab:red", lw=1.0)
+        ax1.plot(t - t[0], np.asarray(ate_result["error_m"]) * 100, "-", color="tab:red", lw=1.0, label="live")
+        if final_result is not None:
+            f = final_result["est_aligned"]
+            ax0.plot(f[:, 0], f[:, 1], "--", color="tab:purple", lw=1.0, label="final trajectory (SE(3)-aligned)")
+            tf = np.asarray(final_result["t_us"]) / 1e6
+            ax1.plot(tf - t[0], np.asarray(final_result["error_m"]) * 100, "--", color="tab:purple", lw=1.0, label="final")
         ax1.set_title(f"ATE RMSE {ate_result['ate_rmse_m'] * 100:.2f} cm"
-                      + (f" ({ate_result['ate_pct']:.2f} % of {ate_result['path_length_m']:.2f} m)" if ate_result.get("ate_pct") is not None else ""))
+                      + (f" ({ate_result['ate_pct']:.2f} % of {ate_result['path_length_m']:.2f} m)" if ate_result.get("ate_pct") is not None else "")
+                      + (f", final {final_result['ate_rmse_m'] * 100:.2f} cm" if final_result is not None else ""))
         for i, tl in enumerate(loop_times_s or []):
             ax1.axvline(tl - t[0], color="tab:blue", lw=0.8, ls="--", label="loop closure" if i == 0 else None)
         shade_init = init_time_s is not None and init_time_s > t[0]
         if shade_init:
             ax1.axvspan(0.0, init_time_s - t[0], color="0.85", label="before initialisation")
-        if loop_times_s or shade_init:
+        if loop_times_s or shade_init or final_result is not None:
             ax1.legend(loc="upper right", fontsize=8)
     else:
         if gt is not None and len(gt):
