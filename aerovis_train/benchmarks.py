@@ -17,25 +17,32 @@ def compose_config(overrides: list[str]):
         return compose("config", overrides=overrides + ["run_dir=."])
 
 
-def bench_train(models=("superlite", "superevent_plus"), steps: int = 12, warmup: int = 3, overrides: list[str] | None = None) -> dict:
+def bench_train(models=("superlite", "superevent_plus"), steps: int = 12, warmup: int = 3, overrides: list[str] | None = None,
+                device: str = "cpu") -> dict:
     """Training throughput with the default data pipeline and the fraction of step time spent waiting
     for data, per model, measured in one run on the default config (``data=sim``: the `train` preset,
     generated on first use).
 
     ``data_wait_fraction`` is the time blocked in ``next(loader)`` over the whole step time: below 20 %
-    means the loader (with ``data.num_workers`` workers) keeps up with the model.
+    means the loader (with ``data.num_workers`` workers) keeps up with the model. ``device``
+    (``cpu``, ``cuda``) is where the model trains; on a GPU each step ends with a synchronisation, so
+    the step time is the GPU's, and batches are copied to it as a training run copies them.
     """
+    from lightning.fabric.utilities.apply_func import move_data_to_device
     from omegaconf import OmegaConf
 
     from .data import make_loader
     from .module import KeypointModule
     from .training import make_dataset, sequences_from_config
 
-    result: dict = {"steps": steps}
+    dev = torch.device(device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError("aerovis-bench train --device cuda: no CUDA device is available to torch")
+    result: dict = {"steps": steps, "device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu"}
     for name in models:
         overrides_m = [f"model={name}"] + (["data.crop=[160,200]"] if name.startswith("superevent") else []) + list(overrides or [])
         cfg = compose_config(overrides_m)
-        module = KeypointModule(OmegaConf.to_container(cfg, resolve=True))
+        module = KeypointModule(OmegaConf.to_container(cfg, resolve=True)).to(dev)
         train_paths, _ = sequences_from_config(cfg.data)
         ds = make_dataset(cfg, train_paths, module.model.size_multiple, samples_per_epoch=(steps + warmup) * int(cfg.data.batch_size))
         loader = make_loader(ds, int(cfg.data.batch_size), int(cfg.data.num_workers), shuffle=True)
@@ -44,12 +51,14 @@ def bench_train(models=("superlite", "superevent_plus"), steps: int = 12, warmup
         wait = busy = 0.0
         for i in range(steps + warmup):
             t0 = time.perf_counter()
-            batch = next(it)
+            batch = move_data_to_device(next(it), dev)
             t1 = time.perf_counter()
             loss = module._losses(batch)["loss"]
             opt.zero_grad()
             loss.backward()
             opt.step()
+            if dev.type == "cuda":
+                torch.cuda.synchronize(dev)
             t2 = time.perf_counter()
             if i >= warmup:
                 wait += t1 - t0
