@@ -112,6 +112,8 @@ class EventPairDataset(Dataset):
         samples_per_epoch: length of an epoch (pairs are drawn at random); None = one per usable frame.
         seed: base seed; sample ``i`` of epoch ``e`` is a pure function of (seed, e, i).
         labeller: frame -> corners; Shi-Tomasi by default.
+        event_cache: folder of decoded, memory-mapped copies of the sequences
+            (:mod:`aerovis_train.decoded`), built on first use; None reads the files directly.
     """
 
     def __init__(
@@ -127,6 +129,7 @@ class EventPairDataset(Dataset):
         seed: int = 0,
         labeller: Labeller | None = None,
         min_history_ms: float = 50.0,
+        event_cache: str | os.PathLike | None = None,
     ):
         if supervision not in ("depth", "epipolar"):
             raise ValueError(f"supervision must be 'depth' or 'epipolar', not {supervision!r}")
@@ -151,6 +154,7 @@ class EventPairDataset(Dataset):
         self.samples_per_epoch = samples_per_epoch or len(self.frames)
         self.epoch = 0
         self._open: dict[int, Sequence] = {}
+        self.event_cache = None if event_cache is None else Path(event_cache).expanduser()
 
     def __len__(self) -> int:
         return self.samples_per_epoch
@@ -160,7 +164,12 @@ class EventPairDataset(Dataset):
 
     def _seq(self, si: int) -> Sequence:
         if si not in self._open:
-            self._open[si] = Sequence(self.infos[si].path)
+            seq = Sequence(self.infos[si].path)
+            if self.event_cache is not None:
+                from .decoded import DecodedSequence
+
+                seq = DecodedSequence(seq, self.event_cache)
+            self._open[si] = seq
         return self._open[si]
 
     def _choose_pair(self, rng: np.random.Generator, index: int):

@@ -107,7 +107,20 @@ def make_dataset(cfg: DictConfig, paths: list[Path], size_multiple: int, samples
     return EventPairDataset(
         paths, mcts_spec_from_config(cfg.model.mcts), crop=crop, max_gap_frames=int(cfg.data.max_gap_frames),
         stereo_fraction=float(cfg.data.stereo_fraction), supervision=str(cfg.data.supervision),
-        samples_per_epoch=samples_per_epoch or int(cfg.data.samples_per_epoch), seed=int(cfg.seed))
+        samples_per_epoch=samples_per_epoch or int(cfg.data.samples_per_epoch), seed=int(cfg.seed),
+        event_cache=event_cache_dir(cfg.data.get("event_cache")))
+
+
+def event_cache_dir(setting) -> Path | None:
+    """``data.event_cache``: null/false (off), true (``$AEROVIS_CACHE/decoded`` or
+    ``~/.cache/aerovis/decoded``) or a folder."""
+    if setting is None or setting is False:
+        return None
+    if setting is True:
+        from aerovis_slam.sim.cache import cache_root
+
+        return cache_root().parent / "decoded"
+    return Path(str(setting)).expanduser()
 
 
 def init_from_weights(model: torch.nn.Module, name_or_path: str, model_cfg) -> None:

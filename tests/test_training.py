@@ -192,3 +192,31 @@ def test_bad_training_input_is_explained(tmp_path, sim_cache):
         w.add_events("cam0", EventArray([1, 2], [0, 1], [0, 1], [0, 1]))
     res = _train(tmp_path / "run2", "data=sequences", f"data.train=[{nogt}]", f"data.val=[{nogt}]", "data.crop=[40,56]")
     assert res.returncode == 2 and "nogt.h5: no /gt poses" in res.stderr
+
+
+def test_decoded_event_cache_gives_the_same_samples(tmp_path, sim_cache):
+    """data.event_cache: pairs drawn through the memory-mapped decoded copies equal those read from
+    the compressed files (MCTS, frames, depth: every tensor of every sample); one complete copy per
+    sequence is left, no temporary folder, and a second dataset reuses the copies."""
+    import torch
+
+    from aerovis_slam.mcts import MCTS_NE_EVENTS_PER_PX
+    from aerovis_slam.sim.cache import ensure_preset
+    from aerovis_train.data import EventPairDataset, MctsSpec
+    from aerovis_train.decoded import cache_key
+
+    paths = sorted(ensure_preset("tiny", str(sim_cache), progress=False).glob("*.h5"))
+    kw = dict(crop=(40, 56), samples_per_epoch=6, seed=3)
+    plain = EventPairDataset(paths, MctsSpec("ne", MCTS_NE_EVENTS_PER_PX), **kw)
+    cached = EventPairDataset(paths, MctsSpec("ne", MCTS_NE_EVENTS_PER_PX), event_cache=tmp_path / "decoded", **kw)
+    for i in range(6):
+        a, b = plain[i], cached[i]
+        assert a.keys() == b.keys()
+        for k in a:  # exact, NaN (cells without a correspondence) included
+            torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, equal_nan=True, msg=k)
+    folders = sorted(p.name for p in (tmp_path / "decoded").iterdir())
+    assert folders == sorted({cache_key(p) for p in paths})  # complete copies only, no .tmp folder
+    mtimes = {f: (tmp_path / "decoded" / f).stat().st_mtime_ns for f in folders}
+    again = EventPairDataset(paths, MctsSpec("ne", MCTS_NE_EVENTS_PER_PX), event_cache=tmp_path / "decoded", **kw)
+    again[0]
+    assert {f: (tmp_path / "decoded" / f).stat().st_mtime_ns for f in folders} == mtimes
