@@ -12,7 +12,8 @@ No library does this for HDF5 (h5py's chunk cache is per process and per dataset
 Layout: ``<cache_dir>/<key>/<cam>_{t,x,y,p,frames,depth}.npy`` with ``key`` from the file's resolved
 path, size and modification time, so a regenerated sequence gets a fresh copy. A copy is built in a
 temporary folder and renamed into place: concurrent loader workers that build the same copy end with
-one complete folder, and an interrupted build leaves nothing that looks finished.
+one complete folder, and an interrupted build leaves nothing that looks finished. Copies of files that
+changed since are not removed: delete the cache folder to reclaim the space.
 """
 
 from __future__ import annotations
