@@ -155,6 +155,10 @@ class EventPairDataset(Dataset):
         self.epoch = 0
         self._open: dict[int, Sequence] = {}
         self.event_cache = None if event_cache is None else Path(event_cache).expanduser()
+        if self.event_cache is not None:
+            from .decoded import prepare_decoded
+
+            prepare_decoded([info.path for info in self.infos], self.event_cache)
 
     def __len__(self) -> int:
         return self.samples_per_epoch

@@ -62,6 +62,17 @@ def build_decoded(seq: Sequence, folder: Path) -> Path:
     return folder
 
 
+def prepare_decoded(paths: list[str | os.PathLike], cache_dir: str | os.PathLike, *, progress: bool = True) -> None:
+    """Build the missing decoded copies of ``paths`` now (with a progress bar), so that loader
+    workers only map them and never stall a training step decoding (nor decode the same file twice)."""
+    from tqdm import tqdm
+
+    todo = [Path(p) for p in paths if not (Path(cache_dir) / cache_key(p)).is_dir()]
+    for path in tqdm(todo, desc="decoding sequences (data.event_cache)", unit="seq", disable=not progress or not todo):
+        with Sequence(path) as seq:
+            build_decoded(seq, Path(cache_dir) / cache_key(path))
+
+
 class DecodedSequence:
     """The reads of a training pair (:func:`aerovis_train.data.compute_mcts`, frames, depth) served
     from the memory-mapped decoded copy of ``seq``; anything else goes to ``seq`` itself.

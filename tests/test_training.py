@@ -195,9 +195,9 @@ def test_bad_training_input_is_explained(tmp_path, sim_cache):
 
 
 def test_decoded_event_cache_gives_the_same_samples(tmp_path, sim_cache):
-    """data.event_cache: pairs drawn through the memory-mapped decoded copies equal those read from
-    the compressed files (MCTS, frames, depth: every tensor of every sample); one complete copy per
-    sequence is left, no temporary folder, and a second dataset reuses the copies."""
+    """data.event_cache: the copies are built when the dataset is made; pairs drawn through them equal
+    those read from the compressed files (MCTS, frames, depth: every tensor of every sample); one
+    complete copy per sequence is left, no temporary folder, and a second dataset reuses the copies."""
     import torch
 
     from aerovis_slam.mcts import MCTS_NE_EVENTS_PER_PX
@@ -209,6 +209,7 @@ def test_decoded_event_cache_gives_the_same_samples(tmp_path, sim_cache):
     kw = dict(crop=(40, 56), samples_per_epoch=6, seed=3)
     plain = EventPairDataset(paths, MctsSpec("ne", MCTS_NE_EVENTS_PER_PX), **kw)
     cached = EventPairDataset(paths, MctsSpec("ne", MCTS_NE_EVENTS_PER_PX), event_cache=tmp_path / "decoded", **kw)
+    assert len(list((tmp_path / "decoded").iterdir())) == len(paths)  # built before any sample, not by the workers
     for i in range(6):
         a, b = plain[i], cached[i]
         assert a.keys() == b.keys()
