@@ -113,7 +113,7 @@ class EventPairDataset(Dataset):
         seed: base seed; sample ``i`` of epoch ``e`` is a pure function of (seed, e, i).
         labeller: frame -> corners; Shi-Tomasi by default.
         event_cache: folder of decoded, memory-mapped copies of the sequences
-            (:mod:`aerovis_train.decoded`), built on first use; None reads the files directly.
+            (:mod:`aerovis_train.decoded`), the missing ones built here; None reads the files directly.
     """
 
     def __init__(

@@ -35,7 +35,7 @@ from ..errors import DataError
 from ..measurements import PoseSamples
 from .report import compute_metrics, plot_trajectory, write_metrics
 from ..fileio import atomic_write_text, prepare_out_dir
-from .trajectory import ate, write_tum
+from .trajectory import write_tum
 
 TRAJ_FILE = "traj.txt"
 FINAL_TRAJ_FILE = "traj_final.txt"  # complete runs only: outputs re-anchored to their keyframes' final estimates
@@ -130,7 +130,7 @@ def run_sequence(sequence: str | os.PathLike, detector, config, out_dir: str | o
              "keyframes": getattr(result, "keyframes", None), "pipeline_info": getattr(result, "info", None)}
     if closer is not None:
         result.warnings.extend(w for w in closer.warnings if w not in result.warnings)
-    metrics, ate_se3 = compute_metrics(result, gt, sequence=sequence, detector=getattr(detector, "name", None), mode=mode,
+    metrics, ate_se3, ate_final = compute_metrics(result, gt, sequence=sequence, detector=getattr(detector, "name", None), mode=mode,
                                        config=getattr(config, "name", None), extra=extra)
     complete = bool(result.complete)
     name = TRAJ_FILE if complete else PARTIAL_TRAJ_FILE
@@ -152,11 +152,8 @@ def run_sequence(sequence: str | os.PathLike, detector, config, out_dir: str | o
         loops = [c["t_s"] for c in (extra["loop"] or {}).get("closures", [])]
         title = f"{sequence.stem} | {metrics['detector']} | {mode}" + ("" if complete else " | PARTIAL")
         t_init = (extra["pipeline_info"] or {}).get("t_initialized_us")
-        final = None
-        if ate_se3 is not None and getattr(result, "pose7_final", None) is not None:
-            final = ate(gt, PoseSamples(result.t_us, result.pose7_final), align="se3", interpolate=True)
         plot_trajectory(out / PLOT_FILE, gt, ate_se3, est=PoseSamples(result.t_us, result.pose7), title=title, loop_times_s=loops,
-                        init_time_s=None if t_init is None else t_init / 1e6, final_result=final)
+                        init_time_s=None if t_init is None else t_init / 1e6, final_result=ate_final)
     return metrics
 
 
@@ -315,25 +312,19 @@ def format_table(rows: list[dict]) -> str:
                 vals.append(f"**{txt}**" if r["status"] == "ok" and r["ate_rmse_m"] == best and len(oks) > 1 else txt)
         lines.append(f"| {s} | {length:.2f} | " if length else f"| {s} | - | ")
         lines[-1] += " | ".join(vals) + " |"
+
+    def first_run_table(text) -> list[str]:
+        """One line per sequence, one cell per detector x mode: ``text(row)`` of its first run ('' without one)."""
+        return header(False) + [f"| {s} | " + " | ".join("" if (r := cell.get((s, d, m))) is None else text(r) for d, m in cols) + " |"
+                                for s in seqs]
+
     lines += ["", "Processing rate [Hz] (poses per second of processing) and loop closures (LC).", ""]
-    lines += header(False)
-    for s in seqs:
-        vals = []
-        for d, m in cols:
-            r = cell.get((s, d, m))
-            vals.append("" if r is None or r["rate_hz"] is None else f"{r['rate_hz']:.1f} ({r['loop_closures']} LC)")
-        lines.append(f"| {s} | " + " | ".join(vals) + " |")
+    lines += first_run_table(lambda r: "" if r["rate_hz"] is None else f"{r['rate_hz']:.1f} ({r['loop_closures']} LC)")
     if any(r.get("ate_pct_final") is not None for r in cell.values()):
         lines += ["", "Final trajectory (`traj_final.txt`: every output moved with its keyframe's last smoother estimate "
                   "and the last loop-closure pose graph, as OKVIS2's final trajectory; not available live): "
                   "ATE [% of path], live outputs above.", ""]
-        lines += header(False)
-        for s in seqs:
-            vals = []
-            for d, m in cols:
-                r = cell.get((s, d, m))
-                vals.append("" if r is None or r.get("ate_pct_final") is None or r["status"] != "ok" else f"{r['ate_pct_final']:.2f} %")
-            lines.append(f"| {s} | " + " | ".join(vals) + " |")
+        lines += first_run_table(lambda r: "" if r.get("ate_pct_final") is None or r["status"] != "ok" else f"{r['ate_pct_final']:.2f} %")
     spread = _spread_cells(all_rows)
     n_rep = max((len(v) for v in spread.values()), default=1)
     if n_rep > 1:

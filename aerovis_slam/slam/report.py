@@ -55,19 +55,20 @@ def stage_summary(stage_ms: dict[str, list[float]]) -> dict[str, dict]:
 
 def compute_metrics(result, gt: PoseSamples | None, *, sequence: str | os.PathLike | None = None, detector: str | None = None,
                     mode: str | None = None, config: str | None = None, extra: dict | None = None,
-                    rpe_delta_s: float = 1.0) -> tuple[dict, dict | None]:
+                    rpe_delta_s: float = 1.0) -> tuple[dict, dict | None, dict | None]:
     """Metrics of one run.
 
     Args:
         result: a ``SlamResult`` (fields ``t_us``, ``pose7``, ``latency_ms``, ``stage_ms``, ``wall_s``,
             ``sequence_duration_s``, ``loop_closures``, ``tracking_losses``, ``warnings``, ``status``,
-            ``complete``).
+            ``complete``; optional ``pose7_final``).
         gt: ground truth ``T_world_body`` (None: accuracy fields are None and a warning says why).
         sequence, detector, mode, config: recorded as given.
         extra: merged in last (e.g. the loop closer's summary).
 
     Returns:
-        (metrics dict ready for JSON, the SE(3) ATE result with its arrays for plotting or None).
+        (metrics dict ready for JSON, the SE(3) ATE result with its arrays for plotting or None, the
+        same for the final trajectory or None).
     """
     t_us = np.asarray(result.t_us, np.int64)
     pose7 = np.asarray(result.pose7, np.float64).reshape(-1, 7)
@@ -106,7 +107,7 @@ def compute_metrics(result, gt: PoseSamples | None, *, sequence: str | os.PathLi
         "warnings": warnings,
         "final": None,  # the final trajectory's accuracy (pipeline.SlamResult.pose7_final), when the run completed
     }
-    ate_se3 = None
+    ate_se3 = ate_final = None
     if gt is None or len(gt) == 0:
         warnings.append("no ground truth in the sequence: accuracy not evaluated")
     elif n < 3:
@@ -134,13 +135,14 @@ def compute_metrics(result, gt: PoseSamples | None, *, sequence: str | os.PathLi
             if final is not None:
                 # the same alignment and RPE of the final trajectory (same times as the live outputs)
                 est_f = PoseSamples(t_us, np.asarray(final, np.float64).reshape(-1, 7))
-                rf = json_ready(ate(gt, est_f, align="se3", interpolate=True))
+                ate_final = ate(gt, est_f, align="se3", interpolate=True)
+                rf = json_ready(ate_final)
                 rpe_f = rpe(gt, est_f, delta_s=delta)
                 m["final"] = {"ate_rmse_m": rf["ate_rmse_m"], "ate_pct": rf["ate_pct"], "ate_max_m": rf["ate_max_m"],
                               "rpe_trans_rmse_m": rpe_f["rpe_trans_rmse_m"], "rpe_rot_rmse_deg": rpe_f["rpe_rot_rmse_deg"]}
     if extra:
         m.update(extra)
-    return m, ate_se3
+    return m, ate_se3, ate_final
 
 
 def write_metrics(path: str | os.PathLike, metrics: dict) -> Path:
