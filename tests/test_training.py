@@ -221,3 +221,27 @@ def test_decoded_event_cache_gives_the_same_samples(tmp_path, sim_cache):
     again = EventPairDataset(paths, MctsSpec("ne", MCTS_NE_EVENTS_PER_PX), event_cache=tmp_path / "decoded", **kw)
     again[0]
     assert {f: (tmp_path / "decoded" / f).stat().st_mtime_ns for f in folders} == mtimes
+
+
+def test_non_finite_time_surface_is_refused_naming_the_file(sim_cache, monkeypatch):
+    """A time surface with NaN (a corrupt timestamp, say) stops the loader with the sequence, camera
+    and frame named, before any loss sees it."""
+    from aerovis_slam.errors import DataError
+    from aerovis_slam.mcts import MCTS_NE_EVENTS_PER_PX
+    from aerovis_slam.sim.cache import ensure_preset
+    from aerovis_train import data
+    from aerovis_train.data import EventPairDataset, MctsSpec
+
+    paths = sorted(ensure_preset("tiny", str(sim_cache), progress=False).glob("*.h5"))[:1]
+    ds = EventPairDataset(paths, MctsSpec("ne", MCTS_NE_EVENTS_PER_PX), crop=(40, 56), samples_per_epoch=2, seed=0)
+    ds[0]  # fine as it is
+    real = data.mcts_from_events
+
+    def poisoned(*args, **kwargs):
+        out = real(*args, **kwargs)
+        out[0, 3, 5] = np.nan
+        return out
+
+    monkeypatch.setattr(data, "mcts_from_events", poisoned)
+    with pytest.raises(DataError, match=rf"{paths[0].name}.*non-finite values in the MCTS of cam\d at frame \d+"):
+        ds[0]
