@@ -143,6 +143,7 @@ class StereoInertialOdometry:
         self.n_keyframes = 0
         self.kf_odom: dict[int, np.ndarray] = {}       # keyframe id -> T_world_body (odometry) at insertion
         self.kf_loop_rows: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # window keyframe -> (keypoint rows, landmark ids) given to the loop closer
+        self.preinit_kfs: list[tuple] = []              # keyframes before initialisation, for the loop closer (see _to_loop_closer)
         self.T_corr = np.eye(4)                         # loop-closure correction: world <- odometry world
         self.kf_smoothed: dict[int, np.ndarray] = {}    # keyframe id -> last smoother estimate T_world_body
         self.loop_corrections = 0
@@ -387,12 +388,18 @@ class StereoInertialOdometry:
         t4 = time.perf_counter()
         self._poll_loop_closer()
         timings["loop"] = (time.perf_counter() - t4) * 1e3
-        T_out = self.T_corr @ self.state.T_world_body
+        return self._result(tau, tracked, is_kf, n_inl, timings)
+
+    def _result(self, tau: int, tracked: bool, is_kf: bool, n_inl: int, timings: dict) -> FrameResult:
+        """The frame's output: ``self.state`` with the loop correction, anchored to the newest
+        smoother keyframe (the state was estimated or IMU-propagated from it, so the final
+        trajectory moves it with that keyframe's later estimates)."""
         anchor, T_kf_body = -1, None
         if self.initialized and self.smoother.kf_ids:
             anchor = self.smoother.kf_ids[-1]
             T_kf_body = invert_T(self.smoother.estimates[anchor].T_world_body) @ self.state.T_world_body
-        return FrameResult(tau, T_out, tracked, is_kf, n_inl, timings, anchor, T_kf_body, self.T_corr.copy())
+        return FrameResult(tau, self.T_corr @ self.state.T_world_body, tracked, is_kf, n_inl, timings, anchor, T_kf_body,
+                           self.T_corr.copy())
 
     def _imu_only_frame(self, tau: int, why: str) -> FrameResult:
         """A frame without visual information: IMU propagation, failure bookkeeping, loop corrections."""
@@ -413,8 +420,7 @@ class StereoInertialOdometry:
             self.init_frames = []
             self._try_initialize(tau, None, None)
         self._poll_loop_closer()
-        ms = (time.perf_counter() - t0) * 1e3
-        return FrameResult(tau, self.T_corr @ self.state.T_world_body, False, False, 0, {"tracking": ms})
+        return self._result(tau, False, False, 0, {"tracking": (time.perf_counter() - t0) * 1e3})
 
     def _visual_failure(self, tau: int) -> bool:
         """Count a frame without visual tracking; declare a tracking loss when they pile up (True)."""
@@ -537,8 +543,8 @@ class StereoInertialOdometry:
             self.lost = False
             self.fail_count = 0
             self.t_last_good = tau
-        if self.loop_closer is not None and self.initialized:
-            self._to_loop_closer(kf, tau, kpL, obs, obs_kp, new_ids, rowsL)
+        if self.loop_closer is not None:
+            self._to_loop_closer(kf, tau, self.kf_state if self.initialized else state, kpL, obs, obs_kp, new_ids, rowsL)
         return True
 
     def _smoother_keyframe(self, kf: int, tau: int, state: NavEstimate, obs: Observations, positions: dict,
@@ -585,21 +591,33 @@ class StereoInertialOdometry:
         self.kf_state = state
         self._remember_window()
 
-    def _to_loop_closer(self, kf, tau, kpL, obs, obs_kp, new_ids, rowsL) -> None:
-        T_wb = self.kf_state.T_world_body
-        T_bw = invert_T(T_wb)
+    def _to_loop_closer(self, kf, tau, kf_state: NavEstimate, kpL, obs, obs_kp, new_ids, rowsL) -> None:
+        """Give keyframe ``kf`` (its estimate, left keypoints and their landmarks) to the loop closer.
+
+        Before initialisation the keyframe waits in ``preinit_kfs`` (its pose is in the vision
+        frame, which only gravity turns into the world frame; body-frame points need no turning)
+        and :meth:`_start` hands them over. A sequence that ends where it began returns to these
+        first keyframes: without them its closing loop has nothing to match.
+        """
+        T_wb = kf_state.T_world_body
         pts_body = np.zeros((len(kpL), 3))
         valid = np.zeros(len(kpL), bool)
         left = obs.cam == 0
         kp_idx = np.concatenate([obs_kp[left], rowsL]).astype(np.int64)
         lm_idx = np.concatenate([obs.landmark[left], new_ids]).astype(np.int64)
-        pts_body[kp_idx] = transform_points(T_bw, self.lmap.pos[lm_idx])
+        pts_body[kp_idx] = transform_points(invert_T(T_wb), self.lmap.pos[lm_idx])
         valid[kp_idx] = True
+        if not self.initialized:
+            self.preinit_kfs.append((kf, int(tau), T_wb.copy(), kpL, pts_body, valid))
+            return
         self._refresh_loop_points()
         self.kf_loop_rows[kf] = (kp_idx, lm_idx)
+        self._add_loop_keyframe(kf, int(tau), T_wb, kpL, pts_body, valid)
+
+    def _add_loop_keyframe(self, kf, tau, T_wb, kpL, pts_body, valid) -> None:
         prev = max(self.kf_odom) if self.kf_odom else None
         self.kf_odom[kf] = T_wb.copy()
-        self.loop_closer.add_keyframe(kf, int(tau), T_wb.copy(), kpL, pts_body, valid, self.cams.left.K.copy(),
+        self.loop_closer.add_keyframe(kf, tau, T_wb.copy(), kpL, pts_body, valid, self.cams.left.K.copy(),
                                       self.cams.left.T_body_cam.copy())
         if prev is not None:
             self.loop_closer.add_odometry(prev, kf, invert_T(self.kf_odom[prev]) @ T_wb)
@@ -690,3 +708,7 @@ class StereoInertialOdometry:
         self.kf_keypoints = kpL
         self.t_initialized = int(tau)
         self.init_frames = []
+        if self.loop_closer is not None:
+            for kf, t_kf, T_vb, kp, pts_body, valid in self.preinit_kfs:
+                self._add_loop_keyframe(kf, t_kf, Rh @ T_vb, kp, pts_body, valid)
+        self.preinit_kfs = []
