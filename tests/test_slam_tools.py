@@ -663,3 +663,24 @@ def test_vocabularies_ship_and_round_trip(tmp_path):
     back = load_vocabularies(tmp_path / "v.npz")
     np.testing.assert_allclose(back["m"], words, rtol=1e-3, atol=1e-3)  # float16 on disk: 3 decimal digits
     assert vocabulary_meta(tmp_path / "v.npz")["m"] == {"note": "x", "words": 8, "dim": 4} and back["n"].shape == (4, 4)
+
+
+def test_loop_errors_judge_a_closure_by_the_ground_truth():
+    """A loop that measured the true relative pose has zero error; the odometry's estimate, 10 cm
+    and 2 deg of yaw off, is the drift the loop should have removed. Times outside the GT: None."""
+    from aerovis_slam.slam.trajectory import loop_errors
+
+    t = np.arange(0, 2_000_001, 10_000, dtype=np.int64)
+    pose7 = np.zeros((len(t), 7))
+    pose7[:, 0] = t * 1e-6  # 1 m/s along x, no rotation
+    pose7[:, 6] = 1.0
+    gt = PoseSamples(t, pose7)
+    T_true = np.eye(4)
+    T_true[0, 3] = 1.5  # match at 0.2 s, query at 1.7 s
+    drift = np.eye(4)
+    drift[:3, :3] = so3_exp(np.array([0.0, 0.0, np.radians(2.0)]))
+    drift[:3, 3] = [0.0, 0.1, 0.0]
+    r = loop_errors(gt, 200_000, 1_700_000, T_true, T_true @ drift)
+    assert r["error_m"] == pytest.approx(0.0, abs=1e-9) and r["error_deg"] == pytest.approx(0.0, abs=1e-6)
+    assert r["true_drift_m"] == pytest.approx(0.1, abs=1e-4) and r["true_drift_deg"] == pytest.approx(2.0, abs=1e-3)
+    assert loop_errors(gt, 200_000, 2_500_000, T_true, T_true) is None

@@ -35,7 +35,7 @@ from ..errors import DataError
 from ..measurements import PoseSamples
 from .report import compute_metrics, plot_trajectory, write_metrics
 from ..fileio import atomic_write_text, prepare_out_dir
-from .trajectory import write_tum
+from .trajectory import loop_errors, write_tum
 
 TRAJ_FILE = "traj.txt"
 FINAL_TRAJ_FILE = "traj_final.txt"  # complete runs only: outputs re-anchored to their keyframes' final estimates
@@ -130,6 +130,9 @@ def run_sequence(sequence: str | os.PathLike, detector, config, out_dir: str | o
              "keyframes": getattr(result, "keyframes", None), "pipeline_info": getattr(result, "info", None)}
     if closer is not None:
         result.warnings.extend(w for w in closer.warnings if w not in result.warnings)
+        if gt is not None:  # each closure judged by the ground truth: did it measure better than the drift it corrected?
+            for record, lc in zip(extra["loop"]["closures"], closer.closures):
+                record.update(loop_errors(gt, lc.match_t_us, lc.t_us, lc.T_match_query, lc.T_est_match_query) or {})
     metrics, ate_se3, ate_final = compute_metrics(result, gt, sequence=sequence, detector=getattr(detector, "name", None), mode=mode,
                                        config=getattr(config, "name", None), extra=extra)
     complete = bool(result.complete)

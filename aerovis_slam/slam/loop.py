@@ -278,7 +278,8 @@ class LoopClosure:
     """A verified loop: keyframe ``query`` sees the place of keyframe ``match``.
 
     ``T_match_query`` (4, 4) is the measured pose of the query body in the match body frame;
-    ``drift_m`` / ``drift_deg`` the correction it implies for the odometry.
+    ``drift_m`` / ``drift_deg`` the correction it implies for the odometry, whose estimate of the
+    same relative pose (loop corrections before this one included) is ``T_est_match_query``.
     """
 
     query: int
@@ -291,6 +292,8 @@ class LoopClosure:
     travelled_m: float
     covariance: np.ndarray  # (6, 6) of T_match_query in gtsam's Pose3 tangent (rotation, translation)
     t_us: int = 0  # time of the query keyframe
+    match_t_us: int = 0  # time of the match keyframe
+    T_est_match_query: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         return {"query": self.query, "match": self.match, "t_s": self.t_us / 1e6, "score": round(self.score, 4), "inliers": self.inliers,
@@ -637,7 +640,8 @@ class LoopCloser:
         travelled = query.travelled_m - match.travelled_m
         if drift_m > self._drift_bound(travelled) or drift_deg > c["max_rotation_drift_deg"]:
             return None, "drift"
-        return LoopClosure(query.kf_id, match.kf_id, score, n_in, T_match_query, drift_m, drift_deg, travelled, cov, query.t_us), None
+        return LoopClosure(query.kf_id, match.kf_id, score, n_in, T_match_query, drift_m, drift_deg, travelled, cov, query.t_us,
+                           match.t_us, T_est), None
 
     def _guided_pairs(self, query: _Keyframe, match: _Keyframe) -> np.ndarray:
         """Matches of the match keyframe's landmarks to the query's keypoints near their projection

@@ -40,7 +40,7 @@ import numpy as np
 
 from ..errors import DataError
 from ..fileio import atomic_write_text
-from ..geometry import interpolate_poses
+from ..geometry import interpolate_poses, invert_T, pose7_to_matrix, rotation_angle_deg
 from ..measurements import PoseSamples
 
 ALIGNMENTS = ("se3", "sim3", "none")
@@ -373,6 +373,31 @@ def rpe(ref: PoseSamples, est: PoseSamples, *, delta_s: float = 1.0, step_s: flo
         t_err, r_err = np.concatenate(trans), np.concatenate(rot)
         out.update(rpe_trans_rmse_m=float(np.sqrt(np.mean(t_err**2))), rpe_rot_rmse_deg=float(np.sqrt(np.mean(r_err**2))),
                    rpe_pairs=int(len(t_err)))
+    return out
+
+
+def loop_errors(ref: PoseSamples, t_match_us: int, t_query_us: int, T_loop: np.ndarray, T_odometry: np.ndarray) -> dict | None:
+    """How good a loop closure was, by the ground truth: the error of the loop's measured relative
+    pose and that of the odometry's estimate it corrected.
+
+    Args:
+        ref: ground-truth ``T_world_body`` samples. t_match_us, t_query_us: the two keyframes' times.
+        T_loop, T_odometry: (4, 4) the query body pose in the match body frame, measured by the loop
+            and as the odometry had it.
+    Returns:
+        ``{"error_m", "error_deg", "true_drift_m", "true_drift_deg"}`` (the loop's error; the
+        odometry's, i.e. the drift the loop should have removed), or None outside the GT's time span.
+    """
+    t = np.array([t_match_us, t_query_us], np.int64)
+    if t.min() < ref.t[0] or t.max() > ref.t[-1]:
+        return None
+    T_w_m, T_w_q = pose7_to_matrix(interpolate_poses(t, ref.t, ref.pose))
+    T_gt = invert_T(T_w_m) @ T_w_q
+    out = {}
+    for name, T in (("error", T_loop), ("true_drift", T_odometry)):
+        E = invert_T(T_gt) @ np.asarray(T, np.float64)
+        out[f"{name}_m"] = round(float(np.linalg.norm(E[:3, 3])), 4)
+        out[f"{name}_deg"] = round(float(rotation_angle_deg(E[:3, :3])), 3)
     return out
 
 
