@@ -596,8 +596,9 @@ class StereoInertialOdometry:
 
         Before initialisation the keyframe waits in ``preinit_kfs`` (its pose is in the vision
         frame, which only gravity turns into the world frame; body-frame points need no turning)
-        and :meth:`_start` hands them over. A sequence that ends where it began returns to these
-        first keyframes: without them its closing loop has nothing to match.
+        and :meth:`_start` hands them over. A run that comes back to where it began (a figure of
+        eight, a spin) finds these first keyframes: 6 of the 15 loops of SuperLitE on the bench
+        preset match one of them.
         """
         T_wb = kf_state.T_world_body
         pts_body = np.zeros((len(kpL), 3))
@@ -710,5 +711,8 @@ class StereoInertialOdometry:
         self.init_frames = []
         if self.loop_closer is not None:
             for kf, t_kf, T_vb, kp, pts_body, valid in self.preinit_kfs:
+                # their landmarks as triangulated then: refining them with the smoother's later
+                # estimates (as for the window's keyframes) was measured worse (four-run means of
+                # the drone flights' final ATE 0.93 / 1.12 % instead of 0.82 / 0.89 %)
                 self._add_loop_keyframe(kf, t_kf, Rh @ T_vb, kp, pts_body, valid)
         self.preinit_kfs = []
