@@ -549,6 +549,13 @@ def test_bench_table_and_json(tmp_path, monkeypatch, empty_config):
     assert [r["ate_pct_final"] for r in rows if r["status"] == "ok"] == pytest.approx([0.0] * 3, abs=1e-9)
     s = bench_mod.summarize(rows)
     assert s["learned/sync"]["best_on"] == 1 and s["classical-orb/async"]["ok"] == 0
+    # loops judged by the ground truth: counted where the loop's error is below the drift it corrected
+    m = {"loop_closures": 3, "loop": {"closures": [{"error_m": 0.05, "true_drift_m": 0.12}, {"error_m": 0.2, "true_drift_m": 0.1},
+                                                    {"error_m": 0.01, "true_drift_m": 0.02}]}, "rate_hz": 10.0}
+    assert bench_mod.bench_row("s", "sync", "d", m, "ok")["loops_better_than_drift"] == 2
+    assert rows[0]["loops_better_than_drift"] is None  # no closure judged (the fake runs have no loop records)
+    assert "| 48.0 (1 LC) |" in table and "better)" not in table
+    assert "(3 LC, 2 better)" in bench_mod.format_table([dict(rows[0], loop_closures=3, loops_better_than_drift=2)])
     # a diverged run is marked as such
     assert bench_mod.classify({"status": "ok", "complete": True, "ate_rmse_m": 0.5, "path_length_m": 1.0}) == "diverged"
 
