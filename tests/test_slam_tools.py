@@ -148,23 +148,17 @@ def test_association_nearest_and_interpolated():
         ate(gt, est, max_diff_s=0.0005)
 
 
-def _T(rotvec, t) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = so3_exp(np.asarray(rotvec, float)), t
-    return T
-
-
 def test_final_trajectory_moves_outputs_with_their_keyframes():
     """Outputs keep their pose relative to their keyframe: when the smoother moves keyframe 1 by D
     and the pose graph corrects keyframe 2 by C, an output anchored to 1 becomes D-moved exactly,
     one anchored to 2 becomes C @ K2' @ rel, and an output without keyframe stays as it was."""
-    K1, K2 = _T([0, 0, 0.1], [1, 0, 0]), _T([0.05, 0, 0.3], [2, 1, 0])
-    rel_a, rel_b, rel_c = _T([0, 0.02, 0], [0.1, 0, 0]), _T([0.01, 0, 0], [0.3, 0.05, 0]), _T([0, 0, -0.02], [0.2, 0, 0.01])
-    Tc_live = _T([0, 0, 0.01], [0.02, 0, 0])
-    live = np.stack([_T([0, 0, 0.5], [9, 9, 9]), Tc_live @ K1 @ rel_a, Tc_live @ K1 @ rel_b, Tc_live @ K2 @ rel_c])
-    D = _T([0, 0.01, 0.02], [0.03, -0.02, 0.01])
-    K1_final, K2_final = D @ K1, _T([0.05, 0, 0.31], [2.02, 1, 0])
-    C = _T([0, 0, -0.05], [-0.1, 0.2, 0])
+    K1, K2 = rigid([0, 0, 1], 6, [1, 0, 0]), rigid([1, 0, 6], 17, [2, 1, 0])
+    rel_a, rel_b, rel_c = rigid([0, 1, 0], 1, [0.1, 0, 0]), rigid([1, 0, 0], 0.5, [0.3, 0.05, 0]), rigid([0, 0, 1], -1, [0.2, 0, 0.01])
+    Tc_live = rigid([0, 0, 1], 0.5, [0.02, 0, 0])
+    live = np.stack([rigid([0, 0, 1], 30, [9, 9, 9]), Tc_live @ K1 @ rel_a, Tc_live @ K1 @ rel_b, Tc_live @ K2 @ rel_c])
+    D = rigid([0, 1, 2], 1.3, [0.03, -0.02, 0.01])
+    K1_final, K2_final = D @ K1, rigid([1, 0, 6], 17.5, [2.02, 1, 0])
+    C = rigid([0, 0, 1], -3, [-0.1, 0.2, 0])
     out = final_trajectory(live, np.array([-1, 1, 1, 2]), np.stack([np.eye(4), rel_a, rel_b, rel_c]), np.stack([Tc_live] * 4),
                            {1: K1_final, 2: K2_final}, {2: C})
     np.testing.assert_array_equal(out[0], live[0])
@@ -684,9 +678,7 @@ def test_loop_errors_judge_a_closure_by_the_ground_truth():
     gt = PoseSamples(t, pose7)
     T_true = np.eye(4)
     T_true[0, 3] = 1.5  # match at 0.2 s, query at 1.7 s
-    drift = np.eye(4)
-    drift[:3, :3] = so3_exp(np.array([0.0, 0.0, np.radians(2.0)]))
-    drift[:3, 3] = [0.0, 0.1, 0.0]
+    drift = rigid([0, 0, 1], 2.0, [0.0, 0.1, 0.0])
     r = loop_errors(gt, 200_000, 1_700_000, T_true, T_true @ drift)
     assert r["error_m"] == pytest.approx(0.0, abs=1e-9) and r["error_deg"] == pytest.approx(0.0, abs=1e-6)
     assert r["true_drift_m"] == pytest.approx(0.1, abs=1e-4) and r["true_drift_deg"] == pytest.approx(2.0, abs=1e-3)
