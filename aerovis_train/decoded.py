@@ -67,10 +67,11 @@ def prepare_decoded(paths: list[str | os.PathLike], cache_dir: str | os.PathLike
     workers only map them and never stall a training step decoding (nor decode the same file twice)."""
     from tqdm import tqdm
 
-    todo = [Path(p) for p in paths if not (Path(cache_dir) / cache_key(p)).is_dir()]
-    for path in tqdm(todo, desc="decoding sequences (data.event_cache)", unit="seq", disable=not progress or not todo):
+    folders = {Path(p): Path(cache_dir) / cache_key(p) for p in paths}
+    todo = [(path, folder) for path, folder in folders.items() if not folder.is_dir()]
+    for path, folder in tqdm(todo, desc="decoding sequences (data.event_cache)", unit="seq", disable=not progress or not todo):
         with Sequence(path) as seq:
-            build_decoded(seq, Path(cache_dir) / cache_key(path))
+            build_decoded(seq, folder)
 
 
 class DecodedSequence:
