@@ -245,3 +245,28 @@ def test_non_finite_time_surface_is_refused_naming_the_file(sim_cache, monkeypat
     monkeypatch.setattr(data, "mcts_from_events", poisoned)
     with pytest.raises(DataError, match=rf"{paths[0].name}.*non-finite values in the MCTS of cam\d at frame \d+"):
         ds[0]
+
+
+class _OpenCvThreads(torch.utils.data.Dataset):
+    """Two samples, each the number of threads OpenCV runs on where the sample is made."""
+
+    def __len__(self):
+        return 2
+
+    def __getitem__(self, i):
+        import cv2
+
+        return cv2.getNumThreads()
+
+
+def test_loader_workers_run_opencv_on_one_thread():
+    """Every loader worker runs OpenCV single-threaded (its pool would start one thread per core in
+    each worker); the main process keeps its own setting."""
+    import cv2
+
+    from aerovis_train.data import make_loader
+
+    before = cv2.getNumThreads()
+    seen = [int(n) for batch in make_loader(_OpenCvThreads(), batch_size=1, num_workers=2, shuffle=False) for n in batch]
+    assert seen == [1, 1]
+    assert cv2.getNumThreads() == before
