@@ -22,7 +22,8 @@ def main(argv: list[str] | None = None) -> int:
     p_mcts.add_argument("--events", type=int, default=10_000_000)
     sub.add_parser("sim", help="simulate a 10 s stereo sequence at 240x320 with handheld motion")
     p_train = sub.add_parser("train", help="training samples/s of superlite and superevent_plus, and the data-wait fraction")
-    p_train.add_argument("--steps", type=int, default=12)
+    p_train.add_argument("--steps", type=int, default=12,
+                         help="timed steps per model (at least 10 x the loader's prefetch queue of 2 x num_workers batches)")
     p_train.add_argument("--device", default="cpu", help="where the model trains: cpu (default) or cuda")
     p_train.add_argument("overrides", nargs="*", help="extra train.py overrides, e.g. data.num_workers=2")
     p_det = sub.add_parser("detector", help="inference and inference + post-processing latency of model bundles (one line each, "
@@ -45,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     elif args.command == "train":
         from aerovis_train.benchmarks import bench_train
 
-        result = bench_train(steps=args.steps, overrides=args.overrides, device=args.device)
+        result = bench_train(steps_min=args.steps, overrides=args.overrides, device=args.device)
     elif args.command == "detector":
         from aerovis_slam.bundle import benchmark_bundles
         from aerovis_slam.errors import DataError

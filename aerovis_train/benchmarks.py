@@ -17,7 +17,7 @@ def compose_config(overrides: list[str]):
         return compose("config", overrides=overrides + ["run_dir=."])
 
 
-def bench_train(models=("superlite", "superevent_plus"), steps: int = 12, warmup: int = 3, overrides: list[str] | None = None,
+def bench_train(models=("superlite", "superevent_plus"), steps_min: int = 12, warmup: int = 3, overrides: list[str] | None = None,
                 device: str = "cpu") -> dict:
     """Training throughput with the default data pipeline and the fraction of step time spent waiting
     for data, per model, measured in one run on the default config (``data=sim``: the `train` preset,
@@ -33,23 +33,30 @@ def bench_train(models=("superlite", "superevent_plus"), steps: int = 12, warmup
 
     from .data import make_loader
     from .module import KeypointModule
-    from .training import make_dataset, sequences_from_config
+    from .training import loader_workers, make_dataset, sequences_from_config
 
     dev = torch.device(device)
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise RuntimeError("aerovis-bench train --device cuda: no CUDA device is available to torch")
-    result: dict = {"steps": steps, "device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu"}
+    result: dict = {"device": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu"}
     for name in models:
-        overrides_m = [f"model={name}"] + (["data.crop=[160,200]"] if name.startswith("superevent") else []) + list(overrides or [])
+        overrides_m = ([f"model={name}"] + (["data.crop=[160,200]"] if name.startswith("superevent") else [])
+                       + (["trainer=gpu"] if dev.type == "cuda" else []) + list(overrides or []))
         cfg = compose_config(overrides_m)
         module = KeypointModule(OmegaConf.to_container(cfg, resolve=True)).to(dev)
         train_paths, _ = sequences_from_config(cfg.data)
         # The workers fill a queue of num_workers * prefetch_factor (2) batches while the first steps run:
         # timing those would measure the queue, not the loader's steady state (a 20-step run with 12
         # workers on a GPU showed 1.5 % waiting, where 4 workers showed 89 %).
-        skip = max(warmup, 2 * int(cfg.data.num_workers) + 1)
+        workers = loader_workers(cfg)
+        skip = max(warmup, 2 * workers + 1)
+        # A loader slightly slower than the model still finds that queue full after the skipped steps
+        # (it drains only by the difference of the two rates), so time at least 10 queues' worth of
+        # steps: batches queued before timing can then hide at most about a tenth of the wait (a 30-step
+        # run with 10 workers on a GPU showed 1.5 % waiting; run long enough, see README).
+        steps = max(steps_min, 10 * 2 * workers)
         ds = make_dataset(cfg, train_paths, module.model.size_multiple, samples_per_epoch=(steps + skip) * int(cfg.data.batch_size))
-        loader = make_loader(ds, int(cfg.data.batch_size), int(cfg.data.num_workers), shuffle=True)
+        loader = make_loader(ds, int(cfg.data.batch_size), workers, shuffle=True)
         opt = module.configure_optimizers()
         it = iter(loader)
         wait = busy = 0.0
@@ -69,12 +76,14 @@ def bench_train(models=("superlite", "superevent_plus"), steps: int = 12, warmup
                 busy += t2 - t1
         bs = int(cfg.data.batch_size)
         result[name] = {
+            "steps": steps,
             "samples_per_s": round(steps * bs / (wait + busy), 3),
             "step_s": round((wait + busy) / steps, 3),
             "data_wait_fraction": round(wait / (wait + busy), 3),
             "batch_size": bs,
             "crop": list(cfg.data.crop),
-            "num_workers": int(cfg.data.num_workers),
+            "num_workers": workers,
+            "event_cache": ds.event_cache is not None,
             "torch_threads": torch.get_num_threads(),
             "warmup_steps": skip,
         }

@@ -270,3 +270,29 @@ def test_loader_workers_run_opencv_on_one_thread():
     seen = [int(n) for batch in make_loader(_OpenCvThreads(), batch_size=1, num_workers=2, shuffle=False) for n in batch]
     assert seen == [1, 1]
     assert cv2.getNumThreads() == before
+
+
+def test_loader_settings_follow_the_trainer(monkeypatch, tmp_path):
+    """data.num_workers=auto and data.event_cache=auto: one worker and no decoded copies on the CPU;
+    on GPUs the cores less one per GPU process, shared, at most 10 a process, and decoded copies in
+    the cache; explicit values win."""
+    import os
+
+    from aerovis_train.benchmarks import compose_config
+    from aerovis_train.training import event_cache_dir, loader_workers
+
+    monkeypatch.setenv("AEROVIS_CACHE", str(tmp_path))
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(16)))
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 4)
+    cpu = compose_config([])
+    assert (loader_workers(cpu), event_cache_dir(cpu)) == (1, None)
+    gpu = compose_config(["trainer=gpu"])
+    assert (loader_workers(gpu), event_cache_dir(gpu)) == (10, tmp_path / "decoded")  # min(10, 16 - 1)
+    ddp = compose_config(["trainer=ddp"])  # devices=-1: the 4 GPUs, 4 cores each, one for the process
+    assert loader_workers(ddp) == 3
+    assert loader_workers(compose_config(["trainer=ddp", "trainer.devices=[0,1]"])) == 7
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1})
+    assert loader_workers(gpu) == 1  # never none
+    explicit = compose_config(["trainer=gpu", "data.num_workers=3", "data.event_cache=false"])
+    assert (loader_workers(explicit), event_cache_dir(explicit)) == (3, None)
+    assert event_cache_dir(compose_config([f"data.event_cache={tmp_path / 'mine'}"])) == tmp_path / "mine"

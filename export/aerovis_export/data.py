@@ -110,7 +110,7 @@ def qat_batches(source: str | Path, model_cfg: dict, size_multiple: int, *, step
 
     from aerovis_train.benchmarks import compose_config
     from aerovis_train.data import make_loader
-    from aerovis_train.training import make_dataset
+    from aerovis_train.training import loader_workers, make_dataset
 
     paths = resolve_sequences(source)
     cfg = compose_config(list(overrides or []) + [f"seed={int(seed)}"])
@@ -134,7 +134,7 @@ def qat_batches(source: str | Path, model_cfg: dict, size_multiple: int, *, step
     cfg.data.crop = crop
     bs = int(batch_size or cfg.data.batch_size)
     ds = make_dataset(cfg, paths, size_multiple, samples_per_epoch=max(1, steps) * bs)
-    loader = make_loader(ds, bs, int(cfg.data.num_workers), shuffle=True)
+    loader = make_loader(ds, bs, loader_workers(cfg), shuffle=True)
     settings = {"data": str(source), "sequences": len(paths), "crop": crop, "batch_size": bs,
                 "supervision": str(cfg.data.supervision), "overrides": list(overrides or [])}
     return loader, settings
