@@ -71,6 +71,14 @@ def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
     return np.degrees(np.arctan2(np.linalg.norm(w, axis=-1) / 2.0, cos))
 
 
+def pose_difference(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    """How far apart two poses (4, 4) in one frame are: the translation norm (in the poses' units) and
+    the rotation angle (degrees) of ``inv(T_a) @ T_b``, the motion from ``a`` to ``b`` in ``a``'s frame
+    (a loop's correction, a relative pose's error against the ground truth)."""
+    E = invert_T(np.asarray(T_a, np.float64)) @ np.asarray(T_b, np.float64)
+    return float(np.linalg.norm(E[:3, 3])), float(rotation_angle_deg(E[:3, :3]))
+
+
 def so3_exp(omega: np.ndarray) -> np.ndarray:
     """Rotation vector(s) (..., 3) in radians -> rotation matrices (..., 3, 3) (Rodrigues)."""
     omega = np.asarray(omega, dtype=np.float64)

@@ -38,6 +38,20 @@ def test_rotation_round_trips():
     np.testing.assert_allclose(g.invert_T(T) @ T, np.tile(np.eye(4), (5, 1, 1)), atol=1e-12)
 
 
+def test_pose_difference_is_the_motion_in_the_first_frame():
+    """inv(A) @ B: A turned 90 deg about z; B is 2 m along A's own x and turned 30 deg further, so
+    the difference is 2 m and 30 deg, whatever A's position (the world offset cancels)."""
+    A = np.eye(4)
+    A[:3, :3] = g.so3_exp(np.array([0, 0, np.pi / 2]))
+    A[:3, 3] = [5.0, -1.0, 2.0]
+    step = np.eye(4)
+    step[:3, :3] = g.so3_exp(np.array([0, 0, np.radians(30)]))
+    step[:3, 3] = [2.0, 0, 0]
+    metres, degrees = g.pose_difference(A, A @ step)
+    assert metres == pytest.approx(2.0, abs=1e-12) and degrees == pytest.approx(30.0, abs=1e-9)
+    assert g.pose_difference(A, A) == (0.0, 0.0)
+
+
 def test_interpolate_poses():
     t = np.array([0, 1_000_000])
     q1 = g.rot_to_quat(g.so3_exp(np.array([0, 0, np.radians(90)])))

@@ -61,7 +61,7 @@ import numpy as np
 
 from ..errors import DataError
 from ..fileio import atomic_write_bytes
-from ..geometry import invert_T, project, rotation_angle_deg, transform_points
+from ..geometry import invert_T, pose_difference, project, transform_points
 from ..keypoints import Keypoints, match_keypoints, pair_similarity
 from .frontend import window_matches
 
@@ -634,9 +634,7 @@ class LoopCloser:
         if cov is None:
             return None, "inliers"
         T_est = invert_T(match.T_world_body) @ query.T_world_body
-        corr = invert_T(T_est) @ T_match_query
-        drift_m = float(np.linalg.norm(corr[:3, 3]))
-        drift_deg = float(rotation_angle_deg(corr[:3, :3]))
+        drift_m, drift_deg = pose_difference(T_est, T_match_query)
         travelled = query.travelled_m - match.travelled_m
         if drift_m > self._drift_bound(travelled) or drift_deg > c["max_rotation_drift_deg"]:
             return None, "drift"

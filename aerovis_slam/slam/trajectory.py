@@ -40,7 +40,7 @@ import numpy as np
 
 from ..errors import DataError
 from ..fileio import atomic_write_text
-from ..geometry import interpolate_poses, invert_T, pose7_to_matrix, rotation_angle_deg
+from ..geometry import interpolate_poses, invert_T, pose7_to_matrix, pose_difference
 from ..measurements import PoseSamples
 
 ALIGNMENTS = ("se3", "sim3", "none")
@@ -395,9 +395,8 @@ def loop_errors(ref: PoseSamples, t_match_us: int, t_query_us: int, T_loop: np.n
     T_gt = invert_T(T_w_m) @ T_w_q
     out = {}
     for name, T in (("error", T_loop), ("true_drift", T_odometry)):
-        E = invert_T(T_gt) @ np.asarray(T, np.float64)
-        out[f"{name}_m"] = round(float(np.linalg.norm(E[:3, 3])), 4)
-        out[f"{name}_deg"] = round(float(rotation_angle_deg(E[:3, :3])), 3)
+        metres, degrees = pose_difference(T_gt, T)
+        out[f"{name}_m"], out[f"{name}_deg"] = round(metres, 4), round(degrees, 3)
     return out
 
 
