@@ -116,6 +116,9 @@ class EventPairDataset(Dataset):
         labeller: frame -> corners; Shi-Tomasi by default.
         event_cache: folder of decoded, memory-mapped copies of the sequences
             (:mod:`aerovis_train.decoded`), the missing ones built here; None reads the files directly.
+        roll_deg: the second view of each pair is turned about its optical axis by an angle drawn
+            uniformly in +-``roll_deg`` degrees (image, frame, depth and pose together: exact geometry;
+            0: off), so that descriptors learn in-plane rotations larger than the pairs' own motion.
     """
 
     def __init__(
@@ -132,6 +135,7 @@ class EventPairDataset(Dataset):
         labeller: Labeller | None = None,
         min_history_ms: float = 50.0,
         event_cache: str | os.PathLike | None = None,
+        roll_deg: float = 0.0,
     ):
         if supervision not in ("depth", "epipolar"):
             raise ValueError(f"supervision must be 'depth' or 'epipolar', not {supervision!r}")
@@ -139,6 +143,7 @@ class EventPairDataset(Dataset):
             raise DataError(None, "no training sequences given")
         self.mcts, self.crop, self.max_gap = mcts, crop, max_gap_frames
         self.stereo_fraction, self.supervision, self.seed = stereo_fraction, supervision, seed
+        self.roll_deg = float(roll_deg)
         self.labeller = labeller or CornerLabeller()
         self.infos = [SequenceInfo(p, need_depth=supervision == "depth") for p in paths]
         self.frames = []  # (sequence index, camera, frame index)
@@ -213,6 +218,8 @@ class EventPairDataset(Dataset):
         si, (c0, f0), (c1, f1) = self._choose_pair(rng, index)
         mcts0, frame0, g0 = self._view(si, c0, f0)
         mcts1, frame1, g1 = self._view(si, c1, f1)
+        if self.roll_deg > 0:  # drawn only when on, so that samples without it stay as they were
+            mcts1, frame1, g1 = roll_view(mcts1, frame1, g1, np.radians(rng.uniform(-self.roll_deg, self.roll_deg)))
         # detector labels: corners, re-detected in the other view, where the time surface has events
         kp0, kp1 = self.labeller(frame0), self.labeller(frame1)
         if self.supervision == "depth":
@@ -257,6 +264,33 @@ def _where_events(xy: np.ndarray, mcts: np.ndarray, radius: int = 1) -> np.ndarr
     keep = np.zeros(len(xy), bool)
     keep[inside] = active[px[inside, 1], px[inside, 0]] > 0
     return xy[keep]
+
+
+def roll_view(mcts: np.ndarray, frame: np.ndarray, view: ViewGeometry, angle_rad: float
+              ) -> tuple[np.ndarray, np.ndarray, ViewGeometry]:
+    """One view as its camera would see it turned by ``angle_rad`` about its optical axis.
+
+    A rotation about the optical axis keeps every point's z-depth and moves pixels by the homography
+    ``K R^T K^-1`` (``R``: the turned camera's axes in the old camera frame), so the MCTS (channels
+    (C, H, W)), the intensity frame and the depth are resampled by it (bilinear; depth nearest, NaN
+    where nothing maps) and ``T_world_cam`` turns by ``R``: the pose-derived correspondences of the
+    pair stay exact. The MCTS of a turned camera is the turned MCTS, since the events move with the
+    image.
+    """
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    H = view.K @ R.T @ np.linalg.inv(view.K)  # old pixel -> pixel of the turned camera
+    w, h = view.size
+
+    def warp(img, interpolation, border):
+        return cv2.warpPerspective(img, H, (w, h), flags=interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=border)
+
+    mcts_r = np.stack([warp(ch, cv2.INTER_LINEAR, 0.0) for ch in mcts]).astype(mcts.dtype, copy=False)
+    frame_r = warp(frame, cv2.INTER_LINEAR, 0)
+    depth_r = None if view.depth is None else warp(np.asarray(view.depth, np.float32), cv2.INTER_NEAREST, float("nan"))
+    T = view.T_world_cam.copy()
+    T[:3, :3] = T[:3, :3] @ R
+    return mcts_r, frame_r, ViewGeometry(view.K, T, depth_r, view.size)
 
 
 def _crop_view(v: ViewGeometry, x0: int, y0: int, w: int, h: int) -> ViewGeometry:

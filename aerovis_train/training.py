@@ -109,7 +109,7 @@ def make_dataset(cfg: DictConfig, paths: list[Path], size_multiple: int, samples
         paths, mcts_spec_from_config(cfg.model.mcts), crop=crop, max_gap_frames=int(cfg.data.max_gap_frames),
         stereo_fraction=float(cfg.data.stereo_fraction), supervision=str(cfg.data.supervision),
         samples_per_epoch=samples_per_epoch or int(cfg.data.samples_per_epoch), seed=int(cfg.seed),
-        event_cache=event_cache_dir(cfg))
+        event_cache=event_cache_dir(cfg), roll_deg=float(cfg.data.get("roll_deg", 0.0)))
 
 
 def gpu_processes(trainer_cfg) -> int:

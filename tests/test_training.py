@@ -296,3 +296,54 @@ def test_loader_settings_follow_the_trainer(monkeypatch, tmp_path):
     explicit = compose_config(["trainer=gpu", "data.num_workers=3", "data.event_cache=false"])
     assert (loader_workers(explicit), event_cache_dir(explicit)) == (3, None)
     assert event_cache_dir(compose_config([f"data.event_cache={tmp_path / 'mine'}"])) == tmp_path / "mine"
+
+
+def test_rolled_view_moves_image_and_pose_together():
+    """A view turned 30 deg about its optical axis: a bright pixel of the MCTS lands where the pose
+    and depth put its 3D point (warp_with_depth from the original view), the depth there is
+    unchanged (a roll keeps z), and the corners nothing maps to have no depth."""
+    from aerovis_train.correspondences import warp_with_depth
+    from aerovis_train.data import roll_view
+
+    view, _ = wall_views()
+    mcts = np.zeros((2, H, W), np.float32)
+    mcts[1, 20, 70] = 1.0  # (x, y) = (70, 20)
+    frame = np.zeros((H, W), np.uint8)
+    rolled_mcts, rolled_frame, rolled = roll_view(mcts, frame, view, np.radians(30.0))
+    assert rolled_mcts.shape == mcts.shape and rolled_mcts.dtype == np.float32 and rolled_frame.shape == frame.shape
+    xy1, vis = warp_with_depth(np.array([[70.0, 20.0]]), view, rolled)
+    assert vis[0]
+    # the blob's bilinear spread: its intensity-weighted centre is the warped point (within 0.5 px)
+    ys, xs = np.nonzero(rolled_mcts[1])
+    wts = rolled_mcts[1][ys, xs]
+    centre = np.array([np.sum(xs * wts), np.sum(ys * wts)]) / wts.sum()
+    np.testing.assert_allclose(centre, xy1[0], atol=0.5)
+    # and the rotation is a real 30 deg one about the principal point (47.5, 31.5)
+    v0, v1 = np.array([70 - 47.5, 20 - 31.5]), xy1[0] - [47.5, 31.5]
+    angle = np.degrees(np.arctan2(v0[0] * v1[1] - v0[1] * v1[0], v0 @ v1))
+    assert abs(abs(angle) - 30.0) < 1e-6 and np.linalg.norm(v1) == pytest.approx(np.linalg.norm(v0))
+    r, c = int(round(xy1[0, 1])), int(round(xy1[0, 0]))
+    assert rolled.depth[r, c] == pytest.approx(2.0)
+    assert np.isnan(rolled.depth[0, 0]) and np.isnan(rolled.depth[-1, -1])
+
+
+def test_roll_augmentation_keeps_pairs_supervised(sim_cache):
+    """data.roll_deg: samples still carry correspondences (cells of view 0 matched in the turned
+    view 1), and roll_deg=0 draws nothing extra, so its samples are those of a dataset without it."""
+    from aerovis_slam.mcts import MCTS_NE_EVENTS_PER_PX
+    from aerovis_slam.sim.cache import ensure_preset
+    from aerovis_train.data import EventPairDataset, MctsSpec
+
+    paths = sorted(ensure_preset("tiny", str(sim_cache), progress=False).glob("*.h5"))
+    kw = dict(crop=(40, 56), samples_per_epoch=4, seed=5, stereo_fraction=0.0)
+    spec = MctsSpec("ne", MCTS_NE_EVENTS_PER_PX)
+    plain, off, rolled = (EventPairDataset(paths, spec, **kw), EventPairDataset(paths, spec, roll_deg=0.0, **kw),
+                          EventPairDataset(paths, spec, roll_deg=40.0, **kw))
+    matched = 0
+    for i in range(4):
+        a, b, r = plain[i], off[i], rolled[i]
+        for k in a:
+            torch.testing.assert_close(a[k], b[k], rtol=0, atol=0, equal_nan=True, msg=k)
+        assert not torch.equal(a["mcts1"], r["mcts1"])
+        matched += int(torch.isfinite(r["warp01"]).all(-1).sum())
+    assert matched > 0
