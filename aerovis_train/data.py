@@ -301,17 +301,16 @@ def _crop_view(v: ViewGeometry, x0: int, y0: int, w: int, h: int) -> ViewGeometr
     return ViewGeometry(K, v.T_world_cam, depth, (w, h))
 
 
-def _init_worker(worker_id: int) -> None:
-    """Each loader worker runs OpenCV on one thread. PyTorch already gives each worker one torch thread;
-    OpenCV's own pool would otherwise start one thread per core in every worker (16 workers x 16
-    threads on a 16-core GPU machine) for frames of a few hundred pixels a side."""
-    cv2.setNumThreads(1)
-
-
 def make_loader(dataset: Dataset, batch_size: int, num_workers: int, shuffle: bool) -> DataLoader:
+    """The training DataLoader. With workers, OpenCV runs single-threaded in this process and so in
+    the workers it forks: its pool would otherwise start one thread per core in every worker (16 x 16
+    on a 16-core GPU machine) for frames of a few hundred pixels a side. It is set here, before the
+    fork, because changing it inside a forked worker deadlocks once this process has used the pool
+    (the second loader of such a process hung)."""
+    if num_workers > 0:
+        cv2.setNumThreads(1)
     return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle, num_workers=num_workers,
-                      persistent_workers=num_workers > 0, pin_memory=torch.cuda.is_available(), drop_last=shuffle,
-                      worker_init_fn=_init_worker if num_workers > 0 else None)
+                      persistent_workers=num_workers > 0, pin_memory=torch.cuda.is_available(), drop_last=shuffle)
 
 
 def mcts_spec_from_config(cfg) -> MctsSpec:

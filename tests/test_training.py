@@ -247,29 +247,32 @@ def test_non_finite_time_surface_is_refused_naming_the_file(sim_cache, monkeypat
         ds[0]
 
 
-class _OpenCvThreads(torch.utils.data.Dataset):
-    """Two samples, each the number of threads OpenCV runs on where the sample is made."""
-
+_LOADER_THREADS_SCRIPT = """
+import cv2, numpy as np, torch
+from aerovis_train.data import make_loader
+frame = (np.random.default_rng(0).random((960, 1280)) * 255).astype(np.uint8)
+cv2.setNumThreads(2)
+for _ in range(10):  # this process uses OpenCV's thread pool before the loaders fork
+    cv2.goodFeaturesToTrack(frame, 500, 0.01, 5)
+class Threads(torch.utils.data.Dataset):
     def __len__(self):
-        return 2
-
+        return 4
     def __getitem__(self, i):
-        import cv2
-
+        cv2.goodFeaturesToTrack(frame[:240, :320], 100, 0.01, 5)
         return cv2.getNumThreads()
+for _ in range(3):
+    print([int(n) for batch in make_loader(Threads(), 1, 2, False) for n in batch], flush=True)
+"""
 
 
 def test_loader_workers_run_opencv_on_one_thread():
-    """Every loader worker runs OpenCV single-threaded (its pool would start one thread per core in
-    each worker); the main process keeps its own setting."""
-    import cv2
-
-    from aerovis_train.data import make_loader
-
-    before = cv2.getNumThreads()
-    seen = [int(n) for batch in make_loader(_OpenCvThreads(), batch_size=1, num_workers=2, shuffle=False) for n in batch]
-    assert seen == [1, 1]
-    assert cv2.getNumThreads() == before
+    """Loader workers run OpenCV single-threaded, also when the process used OpenCV's pool before
+    forking them and makes several loaders in a row (changing the setting inside the workers
+    deadlocked there; a subprocess with a timeout turns such a hang into a failure)."""
+    res = subprocess.run([sys.executable, "-c", _LOADER_THREADS_SCRIPT], capture_output=True, text=True, timeout=120,
+                         cwd=REPO_ROOT)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.split("\n")[:3] == ["[1, 1, 1, 1]"] * 3
 
 
 def test_loader_settings_follow_the_trainer(monkeypatch, tmp_path):
