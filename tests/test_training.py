@@ -350,3 +350,20 @@ def test_roll_augmentation_keeps_pairs_supervised(sim_cache):
         assert not torch.equal(a["mcts1"], r["mcts1"])
         matched += int(torch.isfinite(r["warp01"]).all(-1).sum())
     assert matched > 0
+
+
+def test_training_benchmark_reports_what_it_measured(sim_cache):
+    """aerovis-bench train on the tiny preset: per model the loader it timed (auto: one worker on the
+    CPU, no decoded copies), at least 10 prefetch queues (2 batches a worker) of timed steps, and
+    rates that agree with each other (samples/s = batch / step time; the wait a fraction)."""
+    from aerovis_train.benchmarks import bench_train
+
+    res = bench_train(steps_min=2, overrides=["data.preset=tiny", f"data.cache_dir={sim_cache}", "data.val_sequences=1",
+                                              "data.batch_size=2", "data.crop=[40,40]"])
+    assert res["device"] == "cpu"
+    for name in ("superlite", "superevent_plus"):
+        r = res[name]
+        assert (r["num_workers"], r["event_cache"], r["steps"], r["warmup_steps"]) == (1, False, 20, 3)
+        assert 0.0 <= r["data_wait_fraction"] <= 1.0
+        # step_s is rounded to the millisecond: batch = samples/s x step_s within samples/s x 0.5 ms
+        assert abs(r["samples_per_s"] * r["step_s"] - r["batch_size"]) <= r["samples_per_s"] * 0.0005 + 1e-3
