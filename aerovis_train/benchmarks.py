@@ -52,8 +52,7 @@ def bench_train(models=("superlite", "superevent_plus"), steps_min: int = 12, wa
         skip = max(warmup, 2 * workers + 1)
         # A loader slightly slower than the model still finds that queue full after the skipped steps
         # (it drains only by the difference of the two rates), so time at least 10 queues' worth of
-        # steps: batches queued before timing can then hide at most about a tenth of the wait (a 30-step
-        # run with 10 workers on a GPU showed 1.5 % waiting; run long enough, see README).
+        # steps: batches queued before timing can then hide at most about a tenth of the wait.
         steps = max(steps_min, 10 * 2 * workers)
         ds = make_dataset(cfg, train_paths, module.model.size_multiple, samples_per_epoch=(steps + skip) * int(cfg.data.batch_size))
         loader = make_loader(ds, int(cfg.data.batch_size), workers, shuffle=True)
