@@ -277,9 +277,9 @@ class _Keyframe:
 class LoopClosure:
     """A verified loop: keyframe ``query`` sees the place of keyframe ``match``.
 
-    ``T_match_query`` (4, 4) is the measured pose of the query body in the match body frame;
-    ``drift_m`` / ``drift_deg`` the correction it implies for the odometry, whose estimate of the
-    same relative pose (loop corrections before this one included) is ``T_est_match_query``.
+    ``T_match_query`` (4, 4) is the measured pose of the query body in the match body frame and
+    ``T_est_match_query`` the odometry's estimate of it (loop corrections before this one included);
+    ``drift_m`` / ``drift_deg`` the correction between them, which the loop applies to the odometry.
     """
 
     query: int
@@ -287,13 +287,19 @@ class LoopClosure:
     score: float
     inliers: int
     T_match_query: np.ndarray
-    drift_m: float
-    drift_deg: float
+    T_est_match_query: np.ndarray
     travelled_m: float
     covariance: np.ndarray  # (6, 6) of T_match_query in gtsam's Pose3 tangent (rotation, translation)
-    t_us: int = 0  # time of the query keyframe
-    match_t_us: int = 0  # time of the match keyframe
-    T_est_match_query: np.ndarray | None = None
+    t_us: int  # time of the query keyframe
+    match_t_us: int  # time of the match keyframe
+
+    @property
+    def drift_m(self) -> float:
+        return pose_difference(self.T_est_match_query, self.T_match_query)[0]
+
+    @property
+    def drift_deg(self) -> float:
+        return pose_difference(self.T_est_match_query, self.T_match_query)[1]
 
     def to_dict(self) -> dict:
         return {"query": self.query, "match": self.match, "t_s": self.t_us / 1e6, "score": round(self.score, 4), "inliers": self.inliers,
@@ -638,8 +644,7 @@ class LoopCloser:
         travelled = query.travelled_m - match.travelled_m
         if drift_m > self._drift_bound(travelled) or drift_deg > c["max_rotation_drift_deg"]:
             return None, "drift"
-        return LoopClosure(query.kf_id, match.kf_id, score, n_in, T_match_query, drift_m, drift_deg, travelled, cov, query.t_us,
-                           match.t_us, T_est), None
+        return LoopClosure(query.kf_id, match.kf_id, score, n_in, T_match_query, T_est, travelled, cov, query.t_us, match.t_us), None
 
     def _guided_pairs(self, query: _Keyframe, match: _Keyframe) -> np.ndarray:
         """Matches of the match keyframe's landmarks to the query's keypoints near their projection
