@@ -16,6 +16,7 @@ rectification; and an optional ``imu`` object with Kalibr-named noise parameters
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass, field
 
 import cv2
@@ -39,6 +40,10 @@ class CameraCalibration:
         T_imu_cam: (4, 4) camera-to-IMU transform.
         R_rect: optional (3, 3) rectifying rotation (ROS ``R``).
         P_rect: optional (3, 4) rectified projection (ROS ``P``).
+        timeshift_cam_imu_us: camera-to-IMU clock offset in µs, Kalibr's ``timeshift_cam_imu``:
+            ``t_imu = t_cam + timeshift_cam_imu_us``. The SLAM runtime moves this camera's event
+            timestamps onto the IMU clock with it (0: one clock, as hardware-synchronised rigs and
+            the simulator).
     """
 
     width: int
@@ -52,6 +57,7 @@ class CameraCalibration:
     T_imu_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
     R_rect: np.ndarray | None = None
     P_rect: np.ndarray | None = None
+    timeshift_cam_imu_us: float = 0.0
 
     def __post_init__(self) -> None:
         self.width, self.height = int(self.width), int(self.height)
@@ -62,6 +68,9 @@ class CameraCalibration:
             self.R_rect = np.asarray(self.R_rect, dtype=np.float64).reshape(3, 3)
         if self.P_rect is not None:
             self.P_rect = np.asarray(self.P_rect, dtype=np.float64).reshape(3, 4)
+        self.timeshift_cam_imu_us = float(self.timeshift_cam_imu_us)
+        if not math.isfinite(self.timeshift_cam_imu_us):
+            raise ValueError(f"timeshift_cam_imu_us must be finite, got {self.timeshift_cam_imu_us}")
 
     @property
     def K(self) -> np.ndarray:
@@ -91,6 +100,8 @@ class CameraCalibration:
                 del d[key]
             else:
                 d[key] = np.asarray(d[key]).tolist()
+        if not self.timeshift_cam_imu_us:  # files of single-clock rigs stay as before
+            del d["timeshift_cam_imu_us"]
         return d
 
     @classmethod
@@ -104,7 +115,10 @@ class CameraCalibration:
         if T.shape != (4, 4):
             raise DataError(path, f"calibration of {name}: T_imu_cam has shape {T.shape}, expected (4, 4)")
         known = {k: d[k] for k in ("width", "height", "fx", "fy", "cx", "cy", "distortion_model", "distortion_coeffs", "R_rect", "P_rect") if k in d}
-        return cls(T_imu_cam=T, **known)
+        shift = d.get("timeshift_cam_imu_us", 0.0)
+        if isinstance(shift, bool) or not isinstance(shift, (int, float)) or not math.isfinite(shift):
+            raise DataError(path, f"calibration of {name}: timeshift_cam_imu_us must be a finite number of µs, got {shift!r}")
+        return cls(T_imu_cam=T, timeshift_cam_imu_us=shift, **known)
 
 
 @dataclass

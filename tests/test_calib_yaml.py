@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import yaml
 
+from aerovis_slam.calib import CameraCalibration, RigCalibration
 from aerovis_slam.errors import DataError
 from aerovis_slam.io.calib_yaml import invert_transform, load_calibration, load_ecd_calib_txt
 
@@ -37,8 +38,8 @@ def test_kalibr_camchain_imucam_round_trip(tmp_path):
     chain = {
         "cam0": {"T_cam_imu": T_cam0_imu.tolist(), "camera_model": "pinhole", "distortion_model": "radtan",
                  "distortion_coeffs": [-0.3, 0.1, 0.001, -0.002], "intrinsics": [250.5, 251.25, 170.0, 130.5],
-                 "resolution": [346, 260]},
-        "cam1": {"T_cam_imu": T_cam1_imu.tolist(), "camera_model": "pinhole", "distortion_model": "equidistant",
+                 "resolution": [346, 260], "timeshift_cam_imu": 0.0125},
+        "cam1": {"T_cam_imu": T_cam1_imu.tolist(), "timeshift_cam_imu": -0.000375, "camera_model": "pinhole", "distortion_model": "equidistant",
                  "distortion_coeffs": [0.01, -0.02, 0.003, -0.004], "intrinsics": [300.0, 301.0, 320.0, 240.0],
                  "resolution": [640, 480], "T_cn_cnm1": np.eye(4).tolist()},
     }
@@ -56,6 +57,11 @@ def test_kalibr_camchain_imucam_round_trip(tmp_path):
     np.testing.assert_allclose(c1.T_imu_cam, np.linalg.inv(T_cam1_imu), atol=1e-12)
     assert rig.imu.accelerometer_noise_density == 0.011 and rig.imu.update_rate == 400.0
     assert rig.imu.gyroscope_random_walk == 4.4e-5
+    # Kalibr's timeshift_cam_imu (s, t_imu = t_cam + shift) in µs, kept through the canonical JSON
+    assert c0.timeshift_cam_imu_us == pytest.approx(12500.0, abs=1e-9)
+    assert c1.timeshift_cam_imu_us == pytest.approx(-375.0, abs=1e-9)
+    back = RigCalibration.from_json(rig.to_json())
+    assert [back.cameras[c].timeshift_cam_imu_us for c in ("cam0", "cam1")] == [c0.timeshift_cam_imu_us, c1.timeshift_cam_imu_us]
     # The same via a list of files, and via the folder.
     rig2 = load_calibration([tmp_path / "rig-camchain-imucam.yaml", tmp_path / "rig-imu.yaml"])
     np.testing.assert_array_equal(rig2.cameras["cam1"].T_imu_cam, c1.T_imu_cam)
@@ -211,6 +217,13 @@ def test_bad_inputs_raise_data_error(tmp_path):
                                           "distortion_coeffs": [0, 0, 0, 0], "intrinsics": [1, 1, 1, 1], "resolution": [10, 10]}}))
     with pytest.raises(DataError, match="T_cam_imu.*not a rotation"):
         load_calibration(r)
+    shifted = tmp_path / "shift-camchain-imucam.yaml"
+    shifted.write_text(yaml.safe_dump({"cam0": {"T_cam_imu": np.eye(4).tolist(), "distortion_model": "radtan",
+                                                "distortion_coeffs": [0, 0, 0, 0], "intrinsics": [1, 1, 1, 1],
+                                                "resolution": [10, 10], "timeshift_cam_imu": "soon"}}))
+    with pytest.raises(DataError, match="cam0.timeshift_cam_imu") as err:
+        load_calibration(shifted)
+    assert str(shifted) in str(err.value)
     s = tmp_path / "other.yaml"
     s.write_text("foo: 1\n")
     with pytest.raises(DataError, match="unrecognised calibration"):
@@ -246,6 +259,7 @@ def test_real_sensor_sizes_and_extrinsics(shared_data):
     assert (kal.cameras["cam0"].width, kal.cameras["cam0"].height) == (346, 260)
     assert kal.imu.gyroscope_noise_density == 0.0031404034561189407  # picked up from the sibling -imu.yaml
     assert np.linalg.norm(kal.cameras["cam0"].T_imu_cam[:3, 3]) == pytest.approx(0.0602, abs=1e-3)
+    assert kal.cameras["cam0"].timeshift_cam_imu_us == pytest.approx(1943.8323735646128, abs=1e-6)  # 0.0019438... s
     chain = load_calibration(calib / "hku_ESVIO" / "stereo_calibra2-camchain.yaml")
     assert np.linalg.norm(chain.cameras["cam1"].T_imu_cam[:3, 3]) == pytest.approx(0.05969, abs=1e-4)
     esvio = load_calibration(calib / "hku_ESVIO" / "esvio.yaml")
@@ -269,3 +283,14 @@ def test_real_ros_stereo(shared_data, rig, size, baseline, exact):
     assert T_rl[0, 3] == pytest.approx(ref[0, 3], abs=1e-3)  # the baseline component matches the file's own T_right_left
     if exact:  # these files' R_rect/P_rect were produced from their T_right_left
         np.testing.assert_allclose(T_rl[:3], ref, atol=1e-5)
+
+
+def test_canonical_json_timeshift_is_optional_and_checked():
+    """Files written before the field existed (and single-clock rigs) carry no timeshift: 0; a bad one names the camera."""
+    cam = CameraCalibration(64, 48, 50.0, 50.0, 32.0, 24.0)
+    d = cam.to_json_dict()
+    assert "timeshift_cam_imu_us" not in d
+    assert CameraCalibration.from_json_dict(d).timeshift_cam_imu_us == 0.0
+    d["timeshift_cam_imu_us"] = "late"
+    with pytest.raises(DataError, match="cam1: timeshift_cam_imu_us must be a finite number"):
+        CameraCalibration.from_json_dict(d, name="cam1")

@@ -459,6 +459,46 @@ def test_pipeline_tracks_a_small_flight(small_flight):
         assert len(res.stage_ms[stage]) == len(res.t_us)
 
 
+def _with_camera_clock(src, dst, delta_us: int, timeshift_us: float):
+    """A copy of ``src`` whose cameras run ``delta_us`` late (every event time + delta), with
+    ``timeshift_us`` as both cameras' calibrated ``timeshift_cam_imu_us``."""
+    import shutil
+
+    import h5py
+
+    from aerovis_slam.calib import RigCalibration
+
+    shutil.copy(src, dst)
+    with h5py.File(dst, "r+") as f:
+        for cam in ("cam0", "cam1"):
+            g = f[f"events/{cam}"]
+            g["t"][...] = g["t"][...] + delta_us
+            g["ms_to_idx"].attrs["t0_ms"] = int(g["ms_to_idx"].attrs["t0_ms"]) + delta_us // 1000
+        rig = RigCalibration.from_json(f["calib"].attrs["json"])
+        for cam in rig.cameras.values():
+            cam.timeshift_cam_imu_us = timeshift_us
+        f["calib"].attrs["json"] = rig.to_json()
+    return dst
+
+
+def test_calibrated_camera_clock_offset_is_undone(small_flight, tmp_path):
+    """Cameras 30 ms late on the IMU's clock (t_imu = t_cam - 30 ms, Kalibr's timeshift_cam_imu):
+    with the offset in the calibration the runtime moves the events back onto the IMU clock and
+    the run is the original one, output for output (sync mode is deterministic); without it the
+    events are taken 30 ms late and the run differs."""
+    late = 30_000
+    cfg = load_config("accurate")
+    ref = run_slam(small_flight, StereoClassicalDetector("orb", 300), cfg, mode="sync", progress=False)
+    fixed = _with_camera_clock(small_flight, tmp_path / "late_calibrated.h5", late, -late)
+    res = run_slam(fixed, StereoClassicalDetector("orb", 300), cfg, mode="sync", progress=False)
+    assert res.status == ref.status == "ok"
+    np.testing.assert_array_equal(res.t_us, ref.t_us)
+    np.testing.assert_array_equal(res.pose7, ref.pose7)
+    wrong = _with_camera_clock(small_flight, tmp_path / "late_uncalibrated.h5", late, 0.0)
+    off = run_slam(wrong, StereoClassicalDetector("orb", 300), cfg, mode="sync", progress=False)
+    assert off.status == "ok"
+    assert len(off.t_us) != len(ref.t_us) or not np.array_equal(off.pose7, ref.pose7)
+
 def test_keyframes_before_initialisation_reach_the_loop_closer(small_flight):
     """A sequence that ends where it began can only close its loop against its first keyframes,
     which are made before gravity is known: they wait and reach the loop closer at the

@@ -7,6 +7,8 @@ Supported (detected by :func:`load_calibration` from the file's content, not its
   ``camchain.yaml`` (no IMU: ``cam0`` is the rig frame, ``camN`` chained through ``T_cn_cnm1``),
   plus the Kalibr IMU yaml (``imu0:`` noise densities) into :class:`ImuNoise`. A camchain-imucam
   named ``PREFIX-camchain-imucam.yaml`` picks up ``PREFIX-imu.yaml`` beside it automatically.
+  Each camera's ``timeshift_cam_imu`` (s; ``t_imu = t_cam + shift``) becomes its
+  ``timeshift_cam_imu_us``.
 * **ROS camera_info** yaml (``image_width``, ``camera_matrix``, ``distortion_model``,
   ``distortion_coefficients``, ``rectification_matrix``, ``projection_matrix``): one file is a
   mono rig; two files (or a folder with ``left.yaml`` + ``right.yaml``) are a stereo rig whose
@@ -176,7 +178,13 @@ def _kalibr_camchain(d: dict, path: Path) -> RigCalibration:
             # T_cn_cnm1 maps cam(n-1) points into cam n: T_rig_cn = T_rig_cnm1 @ inv(T_cn_cnm1).
             T_cn_cnm1 = _rigid(_field(c, "T_cn_cnm1", path, where), path, f"{name}.T_cn_cnm1")
             T_imu_cam = cams[names[i - 1]].T_imu_cam @ invert_transform(T_cn_cnm1)
-        cams[name] = _camera(path, name, w, h, fu, fv, pu, pv, _KALIBR_DISTORTION[dist], coeffs, T_imu_cam)
+        extra = {}
+        if has_imu and c.get("timeshift_cam_imu") is not None:
+            (shift_s,) = _numbers(c["timeshift_cam_imu"], 1, path, f"{name}.timeshift_cam_imu")
+            if not np.isfinite(shift_s):
+                raise DataError(path, f"{name}.timeshift_cam_imu must be a finite number of seconds, got {shift_s}")
+            extra["timeshift_cam_imu_us"] = shift_s * 1e6
+        cams[name] = _camera(path, name, w, h, fu, fv, pu, pv, _KALIBR_DISTORTION[dist], coeffs, T_imu_cam, **extra)
     imu = None
     if has_imu:
         m = re.fullmatch(r"(.*)-camchain-imucam\.ya?ml", path.name)

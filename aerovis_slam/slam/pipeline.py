@@ -131,7 +131,11 @@ def _open_inputs(path: Path):
             if cam not in seq.cameras:
                 raise DataError(path, f"no /events/{cam}: stereo SLAM needs cam0 (left) and cam1 (right); found {seq.cameras}")
         ranges = [seq.time_range(c) for c in ("cam0", "cam1")]
-    return calib, imu, ranges
+    # events move onto the IMU clock (Kalibr's t_imu = t_cam + timeshift_cam_imu); all times after
+    # this point, frames and outputs included, are IMU-clock times
+    shifts = {c: int(round(calib.cameras[c].timeshift_cam_imu_us)) for c in ("cam0", "cam1")}
+    ranges = [None if r is None else (r[0] + shifts[c], r[1] + shifts[c]) for r, c in zip(ranges, ("cam0", "cam1"))]
+    return calib, imu, ranges, shifts
 
 
 def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | None = "sync", loop_closer=None,
@@ -155,7 +159,7 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
     mode = mode or config.mode
     if mode not in MODES:
         raise DataError(None, f"mode must be one of {MODES}, got {mode!r}")
-    calib, imu, ranges = _open_inputs(path)
+    calib, imu, ranges, shifts = _open_inputs(path)
     cams = StereoCameras.from_rig(calib, max_width=config.input.max_width, max_height=config.input.max_height,
                                   size_multiple=int(getattr(detector, "size_multiple", 1)), path=path)
     stream = ImuStream(imu, max_gap_us=int(config.tracking.max_imu_gap_ms * 1000))
@@ -235,7 +239,7 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
 
     try:
         reader = EventReader(path, chunk_events=config.input.chunk_events, prefetch=config.input.prefetch_chunks,
-                             stop_event=stop_event)
+                             stop_event=stop_event, time_shift_us=shifts)
         feeder = EventFeeder(reader, cams, mcts_kind=detector.mcts_kind, mcts_params=detector.mcts_params,
                              rate_cap_ev_s=rate_cap)
         min_dt_us = int(round(1e6 / config.max_rate_hz))

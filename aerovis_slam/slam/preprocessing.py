@@ -42,12 +42,16 @@ class EventReader:
         path: canonical sequence file.
         chunk_events: events per chunk. prefetch: chunks queued per camera.
         stop_event: ends the threads early when set (also set by :meth:`close`).
+        time_shift_us: per camera, µs added to every timestamp (the camera's
+            ``timeshift_cam_imu_us``: its events then carry IMU-clock times); missing: 0.
     """
 
     def __init__(self, path: str | Path, *, chunk_events: int = 200_000, prefetch: int = 4,
-                 cams: tuple[str, str] = ("cam0", "cam1"), stop_event: threading.Event | None = None):
+                 cams: tuple[str, str] = ("cam0", "cam1"), stop_event: threading.Event | None = None,
+                 time_shift_us: dict[str, int] | None = None):
         self.path = Path(path)
         self.cams = cams
+        self.time_shift_us = {c: int((time_shift_us or {}).get(c, 0)) for c in cams}
         self.chunk_events = int(chunk_events)
         self.queues = {c: queue.Queue(maxsize=max(int(prefetch), 1)) for c in cams}
         self._stop = threading.Event()
@@ -78,6 +82,8 @@ class EventReader:
                 while pos < n and not self._stopped():
                     stop = min(pos + self.chunk_events, n)
                     ev = seq.events_by_index(cam, pos, stop)
+                    if self.time_shift_us[cam]:
+                        ev = EventArray(ev.t + self.time_shift_us[cam], ev.x, ev.y, ev.p)
                     pos = stop
                     if not self._put(cam, ev):
                         return
