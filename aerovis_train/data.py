@@ -89,14 +89,17 @@ class SequenceInfo:
             self.first_event = {c: (seq.time_range(c) or (None, None))[0] for c in self.cameras}
 
     def T_world_cam(self, cam: str, t_us: int) -> np.ndarray:
-        T_world_body = geo.pose7_to_matrix(geo.interpolate_poses([t_us], self.gt_t, self.gt_pose)[0])
+        """(4, 4) pose of ``cam`` at its own clock's ``t_us`` (the GT, on the IMU clock, at ``t_us`` + its timeshift)."""
+        t_imu = t_us + int(round(self.calib.cameras[cam].timeshift_cam_imu_us))
+        T_world_body = geo.pose7_to_matrix(geo.interpolate_poses([t_imu], self.gt_t, self.gt_pose)[0])
         return T_world_body @ self.calib.cameras[cam].T_imu_cam
 
     def usable_frames(self, cam: str, min_history_us: int) -> np.ndarray:
         """Frame indices with GT coverage and at least ``min_history_us`` of events before them."""
         t = self.frame_times[cam]
         first = self.first_event[cam]
-        ok = (t >= self.gt_t[0]) & (t <= self.gt_t[-1])
+        t_imu = t + int(round(self.calib.cameras[cam].timeshift_cam_imu_us))
+        ok = (t_imu >= self.gt_t[0]) & (t_imu <= self.gt_t[-1])
         ok &= (t >= first + min_history_us) if first is not None else False
         return np.flatnonzero(ok)
 

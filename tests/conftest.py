@@ -17,3 +17,33 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real sensor recordings not found at {SHARED_DATA} (they live beside the checkout, never in it)")
     return SHARED_DATA
+
+
+def _copy_with_camera_clock(src, dst, delta_us: int, timeshift_us: float) -> Path:
+    """A copy of the canonical sequence ``src`` whose cameras run ``delta_us`` late (every event
+    time + delta, a whole number of ms), with ``timeshift_us`` as every camera's calibrated
+    ``timeshift_cam_imu_us``. IMU and GT keep their times."""
+    import shutil
+
+    import h5py
+
+    from aerovis_slam.calib import RigCalibration
+
+    assert delta_us % 1000 == 0, "ms_to_idx stays valid only for whole milliseconds"
+    shutil.copy(src, dst)
+    with h5py.File(dst, "r+") as f:
+        for cam in f["events"]:
+            g = f[f"events/{cam}"]
+            g["t"][...] = g["t"][...] + delta_us
+            g["ms_to_idx"].attrs["t0_ms"] = int(g["ms_to_idx"].attrs["t0_ms"]) + delta_us // 1000
+        rig = RigCalibration.from_json(f["calib"].attrs["json"])
+        for cam in rig.cameras.values():
+            cam.timeshift_cam_imu_us = timeshift_us
+        f["calib"].attrs["json"] = rig.to_json()
+    return Path(dst)
+
+
+@pytest.fixture(scope="session")
+def camera_clock_copy():
+    """:func:`_copy_with_camera_clock`: (src, dst, delta_us, timeshift_us) -> dst."""
+    return _copy_with_camera_clock

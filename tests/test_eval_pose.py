@@ -550,3 +550,21 @@ def test_cli_entry_point_subprocess(tmp_path):
     check = subprocess.run([sys.executable, "-c", "import sys, aerovis_train.eval.cli, aerovis_slam.classical; print('torch' in sys.modules)"],
                            capture_output=True, text=True, timeout=120)
     assert check.stdout.strip() == "False"
+
+
+def test_frames_are_paired_with_the_gt_across_a_calibrated_clock_offset(dot_sequence, tmp_path, camera_clock_copy):
+    """A camera 40 ms late on the IMU/GT clock (t_imu = t_cam - 40 ms, calibrated): the protocol's
+    frames move with the events by 40 ms and each is paired with the same GT pose as before, so
+    pairs and camera poses are the original ones; without the calibrated offset they are not."""
+    late = 40_000
+    with Sequence(dot_sequence) as seq:
+        ref = plan_frames(seq, **SMALL)
+    with Sequence(camera_clock_copy(dot_sequence, tmp_path / "late.h5", late, -late)) as seq:
+        plan = plan_frames(seq, **SMALL)
+    np.testing.assert_array_equal(plan.times_us, ref.times_us + late)
+    np.testing.assert_array_equal(plan.pairs, ref.pairs)
+    np.testing.assert_allclose(plan.T_world_cam, ref.T_world_cam, atol=1e-12)
+    with Sequence(camera_clock_copy(dot_sequence, tmp_path / "late_uncalibrated.h5", late, 0.0)) as seq:
+        wrong = plan_frames(seq, **SMALL)
+    n = min(len(wrong.times_us), len(ref.times_us))
+    assert not np.allclose(wrong.T_world_cam[:n], ref.T_world_cam[:n], atol=1e-6)

@@ -493,18 +493,23 @@ def plan_frames(
     else:
         params = tuple(float(v) for v in (mcts_params or MCTS_DT_WINDOWS_MS))
         warm_t = tr[0] + int(round(max(params) * 1000))
-    t_lo = max(int(gt.t[0]), warm_t, warm_t if t_start_us is None else int(t_start_us))
-    t_hi = min(int(gt.t[-1]), tr[1])
+    # frames are on the camera's clock; the GT (like the IMU) is at t_cam + timeshift_cam_imu
+    shift = int(round(camcal.timeshift_cam_imu_us))
+    t_lo = max(int(gt.t[0]) - shift, warm_t, warm_t if t_start_us is None else int(t_start_us))
+    t_hi = min(int(gt.t[-1]) - shift, tr[1])
     if t_hi <= t_lo:
         raise DataError(path, f"GT [{gt.t[0]}, {gt.t[-1]}] µs and the events of {cam} after MCTS warm-up [{warm_t}, {tr[1]}] µs do not overlap")
     if rate_hz is None:
-        times = gt.t[(gt.t >= t_lo) & (gt.t <= t_hi)].astype(np.int64)
+        t_gt = gt.t.astype(np.int64) - shift
+        times = t_gt[(t_gt >= t_lo) & (t_gt <= t_hi)]
     else:
         times = np.unique(np.round(np.arange(t_lo, t_hi + 1, 1e6 / float(rate_hz))).astype(np.int64))
-    i1 = np.clip(np.searchsorted(gt.t, times, side="left"), 1, len(gt.t) - 1)
-    on_sample = (gt.t[i1] == times) | (gt.t[i1 - 1] == times)
-    times = times[((gt.t[i1] - gt.t[i1 - 1]) * 1e-6 <= max_gt_gap_s) | on_sample]
-    T_w_c = interpolate_poses(gt.t, gt.pose, times) @ camcal.T_imu_cam
+    times_gt = times + shift
+    i1 = np.clip(np.searchsorted(gt.t, times_gt, side="left"), 1, len(gt.t) - 1)
+    on_sample = (gt.t[i1] == times_gt) | (gt.t[i1 - 1] == times_gt)
+    keep = ((gt.t[i1] - gt.t[i1 - 1]) * 1e-6 <= max_gt_gap_s) | on_sample
+    times, times_gt = times[keep], times_gt[keep]
+    T_w_c = interpolate_poses(gt.t, gt.pose, times_gt) @ camcal.T_imu_cam
     pairs = select_pairs(times, T_w_c[:, :3, :3], max_dt_s, max_angle_deg, superevent_code_compat=superevent_code_compat)
     if max_pairs is not None:
         pairs = pairs[: int(max_pairs)]
