@@ -568,3 +568,73 @@ def test_frames_are_paired_with_the_gt_across_a_calibrated_clock_offset(dot_sequ
         wrong = plan_frames(seq, **SMALL)
     n = min(len(wrong.times_us), len(ref.times_us))
     assert not np.allclose(wrong.T_world_cam[:n], ref.T_world_cam[:n], atol=1e-6)
+
+
+# --------------------------------------------------------------------------------------------
+# keypoint lag (aerovis-eval lag)
+# --------------------------------------------------------------------------------------------
+def test_keypoint_lag_geometry_recovers_a_known_lag():
+    """60 points on a wall 3 m ahead of a camera (f = 200 px) moving sideways at 1 m/s and panning
+    at 20 deg/s: "keypoints" are where the points were seen 22 ms before t, corners where they are
+    at t (with their depth). Image speeds are at most 67 px/s (translation) + 70 px/s x 1.25
+    (rotation, 100 px off-axis) < 160 px/s, so the keypoints lie < 0.35 px from the corners moved
+    by 20 ms, and the truncated mean distance over the 5 ms lag grid is a V with its vertex at 22 ms
+    (every point's |lag - 22 ms| x its speed, < 3 px within a grid step), whose parabola refinement
+    is off by less than 0.5 ms (at most 0.42 ms for a V on this grid)."""
+    from aerovis_train.eval.lag import corners_at_lags, nearest_distances, refine_minimum
+
+    K = np.array([[200.0, 0, 212], [0, 200.0, 120], [0, 0, 1]])
+    rng = np.random.default_rng(0)
+    X = np.c_[rng.uniform(-1.4, 1.6, 60), rng.uniform(-1.4, 1.4, 60), np.full(60, 3.0)]
+
+    def T_world_cam(t_s):
+        T = np.eye(4)
+        T[:3, :3] = so3_exp_z(np.deg2rad(20.0) * t_s)
+        T[:3, 3] = [1.0 * t_s, 0, 0]
+        return T
+
+    t, true_lag = 0.1, 0.022
+    T_t = T_world_cam(t)
+    Xc = (np.linalg.inv(T_t) @ np.c_[X, np.ones(60)].T).T[:, :3]
+    corners = (K @ Xc.T).T
+    corners = corners[:, :2] / corners[:, 2:]
+    T_then = np.linalg.inv(T_world_cam(t - true_lag))
+    Xk = (T_then @ np.c_[X, np.ones(60)].T).T[:, :3]
+    keypoints = (K @ Xk.T).T
+    keypoints = keypoints[:, :2] / keypoints[:, 2:]
+    lags_ms = np.arange(-30, 91, 5.0)
+    moved = corners_at_lags(corners, Xc[:, 2], K, T_t, np.stack([T_world_cam(t - L / 1000) for L in lags_ms]))
+    # moving the corners to t itself (lag 0) must give them back exactly
+    np.testing.assert_allclose(moved[list(lags_ms).index(0.0)], corners, atol=1e-9)
+    d = nearest_distances(keypoints, moved)
+    assert d.shape == (len(lags_ms), 60) and d[list(lags_ms).index(20.0)].max() < 0.35
+    lag = refine_minimum(lags_ms, np.minimum(d, 3.0).mean(1))
+    assert lag == pytest.approx(22.0, abs=0.5)
+    assert refine_minimum(np.arange(3.0), np.array([1.0, 1.0, 1.0])) == 0.0  # flat: the first grid point
+
+
+def so3_exp_z(angle):
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])  # about the camera's y axis (a pan)
+
+
+def test_cli_lag_on_tiny_and_bad_input(dot_sequence, tmp_path, capsys):
+    """``aerovis-eval lag`` on a 1.5 s simulated flight of the drone rig at half resolution (frames
+    and depth at 20 Hz): one JSON line per sequence and a summary; lag.json with the curves and
+    lag.png. A sequence without frames: exit 2 naming it."""
+    from aerovis_slam.sim import SequenceSpec, write_sequence
+    from aerovis_train.eval.cli import main
+
+    seq = tmp_path / "flight.h5"
+    write_sequence(SequenceSpec("flight", rig="drone424", rig_scale=0.5, trajectory="drone8", trajectory_seed=5, scene_seed=5,
+                                duration_s=1.5, frame_rate_hz=20, gt_rate_hz=200), seq)
+    assert main(["lag", "--data", str(seq), "--detector", "orb", "--max-frames", "8", "--out", str(tmp_path / "lag")]) == 0
+    lines = [json.loads(x) for x in capsys.readouterr().out.strip().splitlines()]
+    assert lines[0]["sequence"] == "flight" and lines[0]["frames"] == 8 and lines[0]["keypoints"] > 0
+    assert -30.0 <= lines[0]["lag_ms"] <= 90.0 and lines[0]["lag_events_per_px"] >= 0.0
+    assert lines[1]["detector"] == "orb" and lines[1]["sequences"] == 1
+    saved = json.loads((tmp_path / "lag" / "lag.json").read_text())
+    assert len(saved["sequences"][0]["curve"]) == 25 and (tmp_path / "lag" / "lag.png").stat().st_size > 1000
+    assert main(["lag", "--data", dot_sequence, "--detector", "orb"]) == 2
+    err = capsys.readouterr().err
+    assert "dots.h5" in err and "frames" in err

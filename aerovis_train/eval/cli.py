@@ -7,6 +7,8 @@
 
     aerovis-eval compare --data DIR|PRESET [--models ...] [--detectors ...] [--onnx-latency] [--out DIR]
 
+    aerovis-eval lag --data SEQ.h5|DIR|PRESET [--model ...] [--detector ...] [--out DIR]
+
 ``pose`` runs the SuperEvent relative-pose protocol (:mod:`aerovis_train.eval.pose`). With a
 folder, every ``*.h5`` in it (not recursive) is evaluated and the pairs of all sequences are
 pooled into one AUC, as the published numbers pool a dataset's sequences. It prints ONE JSON
@@ -15,6 +17,9 @@ writes the same summary plus per-sequence results and per-pair errors.
 
 ``compare`` (:mod:`aerovis_train.eval.compare`) evaluates the shipped models and the classical
 baselines in one run on the same pairs: one table, one JSON line per method.
+
+``lag`` (:mod:`aerovis_train.eval.lag`) measures how far behind its time stamp a detector's
+keypoints show the scene, on data with intensity frames and depth (the simulator's).
 
 Bad input (missing file, no GT or calibration, no pair) prints one message naming the file and
 exits with status 2. Only ``--model`` imports the learned-model loader (torch / onnxruntime).
@@ -64,8 +69,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="write summary, per-sequence and per-pair results to this JSON file")
     p.add_argument("--quiet", action="store_true", help="no progress bar or human summary")
     from .compare import add_parser as add_compare
+    from .lag import add_parser as add_lag
 
     add_compare(sub)
+    add_lag(sub)
     return ap
 
 
@@ -164,6 +171,10 @@ def main(argv: list[str] | None = None) -> int:
             from .compare import main_compare
 
             return main_compare(args, argv)
+        if args.command == "lag":
+            from .lag import main_lag
+
+            return main_lag(args)
         if args.command == "pose":
             for summary in _pose(args):
                 if not args.quiet:
