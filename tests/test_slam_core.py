@@ -459,29 +459,7 @@ def test_pipeline_tracks_a_small_flight(small_flight):
         assert len(res.stage_ms[stage]) == len(res.t_us)
 
 
-def _with_camera_clock(src, dst, delta_us: int, timeshift_us: float):
-    """A copy of ``src`` whose cameras run ``delta_us`` late (every event time + delta), with
-    ``timeshift_us`` as both cameras' calibrated ``timeshift_cam_imu_us``."""
-    import shutil
-
-    import h5py
-
-    from aerovis_slam.calib import RigCalibration
-
-    shutil.copy(src, dst)
-    with h5py.File(dst, "r+") as f:
-        for cam in ("cam0", "cam1"):
-            g = f[f"events/{cam}"]
-            g["t"][...] = g["t"][...] + delta_us
-            g["ms_to_idx"].attrs["t0_ms"] = int(g["ms_to_idx"].attrs["t0_ms"]) + delta_us // 1000
-        rig = RigCalibration.from_json(f["calib"].attrs["json"])
-        for cam in rig.cameras.values():
-            cam.timeshift_cam_imu_us = timeshift_us
-        f["calib"].attrs["json"] = rig.to_json()
-    return dst
-
-
-def test_calibrated_camera_clock_offset_is_undone(small_flight, tmp_path):
+def test_calibrated_camera_clock_offset_is_undone(small_flight, tmp_path, camera_clock_copy):
     """Cameras 30 ms late on the IMU's clock (t_imu = t_cam - 30 ms, Kalibr's timeshift_cam_imu):
     with the offset in the calibration the runtime moves the events back onto the IMU clock and
     the run is the original one, output for output (sync mode is deterministic); without it the
@@ -489,15 +467,58 @@ def test_calibrated_camera_clock_offset_is_undone(small_flight, tmp_path):
     late = 30_000
     cfg = load_config("accurate")
     ref = run_slam(small_flight, StereoClassicalDetector("orb", 300), cfg, mode="sync", progress=False)
-    fixed = _with_camera_clock(small_flight, tmp_path / "late_calibrated.h5", late, -late)
+    fixed = camera_clock_copy(small_flight, tmp_path / "late_calibrated.h5", late, -late)
     res = run_slam(fixed, StereoClassicalDetector("orb", 300), cfg, mode="sync", progress=False)
     assert res.status == ref.status == "ok"
     np.testing.assert_array_equal(res.t_us, ref.t_us)
     np.testing.assert_array_equal(res.pose7, ref.pose7)
-    wrong = _with_camera_clock(small_flight, tmp_path / "late_uncalibrated.h5", late, 0.0)
+    wrong = camera_clock_copy(small_flight, tmp_path / "late_uncalibrated.h5", late, 0.0)
     off = run_slam(wrong, StereoClassicalDetector("orb", 300), cfg, mode="sync", progress=False)
     assert off.status == "ok"
     assert len(off.t_us) != len(ref.t_us) or not np.array_equal(off.pose7, ref.pose7)
+
+def test_observation_time_is_the_nth_newest_event_averaged_and_bounded():
+    """N = 0.5 events/px x 100 px = 50: the 50th event before the newest. cam0 fires every 100 µs,
+    cam1 every 200 µs (200 events each, the newest at 19,900 and 39,800 µs)."""
+    from aerovis_slam.events import EventArray
+    from aerovis_slam.mcts import TimestampBuffer
+    from aerovis_slam.slam.preprocessing import MAX_OBSERVATION_LAG_US, observation_time
+
+    bufs = []
+    for spacing in (100, 200):
+        b = TimestampBuffer(10, 10, events_per_px=(0.5,))
+        i = np.arange(200)
+        b.ingest(EventArray(i * spacing, i % 10, (i // 10) % 10, i % 2))
+        bufs.append(b)
+    # events 149: cam0 at 14,900, cam1 at 29,800; at tau = 40,000 the lags are 25,100 and 10,200 µs
+    assert observation_time(bufs, 40_000, 0.5) == 40_000 - (25_100 + 10_200) // 2
+    # lags of 85,100 and 70,200 µs are bounded
+    assert observation_time(bufs, 100_000, 0.5) == 100_000 - MAX_OBSERVATION_LAG_US == 50_000
+    # off, or a camera without N events yet: the surfaces' own time
+    assert observation_time(bufs, 40_000, 0.0) == 40_000
+    assert observation_time(bufs, 40_000, 2.0) == 40_000  # N = 200: as many events as cam0 holds
+
+
+def test_observation_lag_moves_frames_to_the_time_their_keypoints_show(small_flight):
+    """With ``detector.observation_lag_events_per_px`` each frame is estimated and output at the
+    time of the N-th newest event (here N = 0.03 x 212 x 120 = 763 per camera): outputs strictly
+    increase, each lies 0-50 ms before its slot on the 50 Hz grid, the median lag is N over the
+    sequence's mean event rate per camera to within a factor of two (the rate varies along the
+    flight), and the frames are tracked as without the lag (more than 80 %)."""
+    cfg = load_config("accurate")
+    cfg.detector.observation_lag_events_per_px = 0.03
+    res = run_slam(small_flight, StereoClassicalDetector("orb", 300), cfg, mode="sync", progress=False)
+    assert res.status == "ok" and res.complete and res.info["initialized"]
+    slots = res.info["t_begin_us"] + 20_000 * np.arange(len(res.t_us))
+    lag = slots - res.t_us
+    assert np.all(np.diff(res.t_us) > 0)
+    assert np.all((lag >= 0) & (lag <= 50_000))
+    with Sequence(small_flight) as s:
+        rate = np.mean([s.num_events(c) / ((s.time_range(c)[1] - s.time_range(c)[0]) * 1e-6) for c in ("cam0", "cam1")])
+    expected_us = round(0.03 * 212 * 120) / rate * 1e6
+    assert expected_us / 2 < np.median(lag[1:]) < expected_us * 2
+    assert res.info["observation_lag_ms"]["median"] == pytest.approx(np.median(lag) / 1000, abs=1e-6)
+    assert res.tracked.mean() > 0.8 and res.tracking_losses == 0
 
 def test_keyframes_before_initialisation_reach_the_loop_closer(small_flight):
     """A sequence that ends where it began can only close its loop against its first keyframes,

@@ -48,7 +48,7 @@ from .cameras import StereoCameras
 from .config import MODES, SlamConfig, load_config
 from .imu import ImuStream
 from .odometry import StereoInertialOdometry, WarningLog
-from .preprocessing import EventFeeder, EventReader, LivePreprocessor
+from .preprocessing import EventFeeder, EventReader, LivePreprocessor, observation_time
 from .trajectory import final_trajectory
 
 __all__ = ["SlamResult", "load_config", "run_slam"]
@@ -223,25 +223,34 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
         shown = max(shown, tau)
 
     counted = [0]  # events in the buffers at the previous frame
+    last_obs = [-(2**62)]  # time of the previous frame's estimate
+    obs_lag: list[int] = []  # tau - time of the estimate, per frame (µs)
 
     def iterate(tau: int, pre_ms: float, buffers=None):
-        """MCTS + odometry at tau. Returns (result, mcts_ms, processing_ms)."""
+        """MCTS + odometry at tau. Returns (result, time of the estimate (µs), mcts_ms, processing_ms)."""
         t0 = time.perf_counter()
         if buffers is None:
             buffers, _ = feeder.snapshot()
         n_events = sum(b.count for b in buffers)
         batch = feeder.mcts_batch(buffers, tau)
         t1 = time.perf_counter()
-        res = odo.process(tau, batch, detector, new_events=n_events - counted[0])
+        # the frame is estimated (and output) at the time its keypoints show: strictly after the
+        # previous frame's, not before the first frame's slot, never after tau (frames come in time
+        # order, so with no lag this is tau)
+        t_obs = min(int(tau), max(observation_time(buffers, tau, feeder.observation_lag_events_per_px), t_begin, last_obs[0] + 1))
+        last_obs[0] = t_obs
+        obs_lag.append(int(tau) - t_obs)
+        res = odo.process(t_obs, batch, detector, new_events=n_events - counted[0])
         counted[0] = n_events
         t2 = time.perf_counter()
-        return res, (t1 - t0) * 1e3, (t2 - t0) * 1e3
+        return res, t_obs, (t1 - t0) * 1e3, (t2 - t0) * 1e3
 
     try:
         reader = EventReader(path, chunk_events=config.input.chunk_events, prefetch=config.input.prefetch_chunks,
                              stop_event=stop_event, time_shift_us=shifts)
         feeder = EventFeeder(reader, cams, mcts_kind=detector.mcts_kind, mcts_params=detector.mcts_params,
-                             rate_cap_ev_s=rate_cap)
+                             rate_cap_ev_s=rate_cap,
+                             observation_lag_events_per_px=config.detector.observation_lag_events_per_px)
         min_dt_us = int(round(1e6 / config.max_rate_hz))
         if mode == "sync":
             finish = float(t_begin)
@@ -250,9 +259,9 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
                 tp = time.perf_counter()
                 feeder.advance_to(tau)
                 pre_ms = (time.perf_counter() - tp) * 1e3
-                res, mcts_ms, proc_ms = iterate(tau, pre_ms)
+                res, t_obs, mcts_ms, proc_ms = iterate(tau, pre_ms)
                 finish = max(finish, float(tau)) + proc_ms * 1e3  # live frame queue: wait for the previous frame
-                record(res, tau, finish - tau, pre_ms, mcts_ms, proc_ms)
+                record(res, t_obs, finish - tau, pre_ms, mcts_ms, proc_ms)
                 tau += frame_us
         elif mode == "async":
             clock = float(t_begin)
@@ -269,9 +278,9 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
                 tp = time.perf_counter()
                 feeder.advance_to(tau)
                 pre_ms = (time.perf_counter() - tp) * 1e3
-                res, mcts_ms, proc_ms = iterate(tau, pre_ms)
+                res, t_obs, mcts_ms, proc_ms = iterate(tau, pre_ms)
                 clock += proc_ms * 1e3
-                record(res, tau, clock - tau, pre_ms, mcts_ms, proc_ms)
+                record(res, t_obs, clock - tau, pre_ms, mcts_ms, proc_ms)
                 last_tau = tau
         else:  # live
             live = LivePreprocessor(feeder, stream.covered_until, t_begin - frame_us, t_end, stop_event=stop_event)
@@ -286,8 +295,8 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
                 if tau < t_begin or (last_tau is not None and tau < last_tau + min_dt_us):
                     time.sleep(0.0005)
                     continue
-                res, mcts_ms, proc_ms = iterate(tau, 0.0, buffers)
-                record(res, tau, live.now_us() - tau, 0.0, mcts_ms, proc_ms)
+                res, t_obs, mcts_ms, proc_ms = iterate(tau, 0.0, buffers)
+                record(res, t_obs, live.now_us() - tau, 0.0, mcts_ms, proc_ms)
                 last_tau = tau
             if live.busy_s:
                 stages["preprocess"] = [live.busy_s * 1e3 / max(len(t_out), 1)] * len(t_out)
@@ -324,6 +333,10 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
         "t_initialized_us": odo.t_initialized,  # outputs before it are vision-only (gyro rotation, no gravity yet)
         "resolution": [cams.left.width, cams.left.height],
         "t_begin_us": int(t_begin), "t_end_us": int(t_end),
+        # detector.observation_lag_events_per_px: how far before their frame slot outputs were placed
+        "observation_lag_ms": ({"median": float(np.median(obs_lag)) / 1000, "max": float(np.max(obs_lag)) / 1000}
+                               if obs_lag and config.detector.observation_lag_events_per_px > 0 else None),
+        "camera_timeshift_us": shifts,
     }
     if failure_trace:
         info["traceback"] = failure_trace

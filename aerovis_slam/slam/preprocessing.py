@@ -130,6 +130,31 @@ class EventReader:
         return any(t.is_alive() for t in self._threads.values())
 
 
+#: Bound of :meth:`EventFeeder.observation_time`'s lag: after a stretch without events the N-th
+#: newest event can be seconds old, while the keypoints then show edges that moved since (such
+#: frames carry few new events and are propagated with the IMU anyway).
+MAX_OBSERVATION_LAG_US = 50_000
+
+
+def observation_time(buffers: list[TimestampBuffer], tau: int, events_per_px: float) -> int:
+    """The time (µs) whose scene the keypoints of the time surfaces at ``tau`` show.
+
+    ``tau`` less the mean over the cameras of how far each buffer's N-th newest event lies behind
+    it (N = ``events_per_px`` x the buffer's pixels), at most :data:`MAX_OBSERVATION_LAG_US`;
+    ``tau`` itself when ``events_per_px`` is 0 or a camera holds no more than N events yet. See
+    ``observation_lag_events_per_px`` in :class:`~aerovis_slam.slam.config.DetectorConfig`.
+    """
+    if events_per_px <= 0:
+        return int(tau)
+    lags = []
+    for b in buffers:
+        n = int(round(events_per_px * b.width * b.height))
+        if b.count <= n:
+            return int(tau)
+        lags.append(max(0, int(tau) - b.timestamp_at_offset(n)))
+    return int(tau) - min(int(round(float(np.mean(lags)))), MAX_OBSERVATION_LAG_US)
+
+
 class EventFeeder:
     """Ingest events of both cameras up to a time; freeze buffers; compute the stereo MCTS.
 
@@ -144,7 +169,7 @@ class EventFeeder:
     """
 
     def __init__(self, reader: EventReader, cams: StereoCameras, *, mcts_kind: str, mcts_params,
-                 rate_cap_ev_s: float | None = None):
+                 rate_cap_ev_s: float | None = None, observation_lag_events_per_px: float = 0.0):
         self.reader = reader
         self.cams = cams
         self.mcts_kind = mcts_kind
@@ -152,6 +177,9 @@ class EventFeeder:
         if mcts_kind not in ("ne", "dt"):
             raise ValueError(f"mcts_kind must be 'ne' or 'dt', got {mcts_kind!r}")
         ring_px = self.mcts_params if mcts_kind == "ne" else (1e-9,)
+        self.observation_lag_events_per_px = float(observation_lag_events_per_px)
+        if self.observation_lag_events_per_px > 0:  # the ring must reach back to the N-th newest event
+            ring_px = tuple(ring_px) + (self.observation_lag_events_per_px,)
         self.buffers = [TimestampBuffer(c.buffer_width, c.buffer_height, pixel_map=c.pixel_map, events_per_px=ring_px,
                                         max_rate_ev_s=rate_cap_ev_s) for c in cams.cams]
         self._pending: list[EventArray | None] = [None, None]
