@@ -313,21 +313,6 @@ class StereoInertialOdometry:
                     loose = {} if self.recovery_kfs == 0 else {"kf_sigmas": (0.01, 0.03, cfg.tracking.recovery_velocity_sigma)}
                     tr = track_frame(self.cams, cfg.backend, self.kf_state, self.pim, guess, obs, self.lmap.pos[obs.landmark],
                                      max_reproj_px=cfg.matching.max_reproj_px, rotation_prior=rot_prior, use=use, **loose)
-                    if visual and not loose and int(tr.inliers.sum()) < cfg.ransac.min_inliers:
-                        # RANSAC found the pose, but held to the keyframe's state the fit rejects it:
-                        # the keyframe's velocity (or the IMU since) contradicts vision. Propagating with
-                        # that state would keep rejecting vision and drift (a bad initial velocity took
-                        # handheld_loop to 129 % this way), so fit once more with the keyframe held
-                        # loosely, as after a restart, and keep it so until the smoother has converged.
-                        tr2 = track_frame(self.cams, cfg.backend, self.kf_state, self.pim, guess, obs, self.lmap.pos[obs.landmark],
-                                          max_reproj_px=cfg.matching.max_reproj_px, use=use,
-                                          kf_sigmas=(0.01, 0.03, cfg.tracking.recovery_velocity_sigma))
-                        if int(tr2.inliers.sum()) >= cfg.ransac.min_inliers:
-                            self.log.warn("prior-conflict", f"t={tau} µs: {int(tr.inliers.sum())} of {n_inl} RANSAC inliers fit "
-                                                            f"the keyframe's state, {int(tr2.inliers.sum())} with it held loosely: "
-                                                            f"tracking loosely for {cfg.tracking.recovery_keyframes} keyframes")
-                            tr = tr2
-                            self.recovery_kfs = max(self.recovery_kfs, cfg.tracking.recovery_keyframes)
                     state = tr.state
                     keep = tr.inliers
                     obs, obs_kp = obs.subset(keep), obs_kp[keep]
