@@ -199,8 +199,8 @@ def keypoint_lag(seq_path: str | Path, detector, *, cam: str = "cam0", lags_ms=D
 
 
 def plot_curves(results: list[dict], path: str | Path) -> Path:
-    """PNG: mean distance to the moved corners against the lag, one line per sequence and method,
-    the refined minimum marked (matplotlib's Agg canvas; written atomically)."""
+    """PNG: mean distance to the moved corners against the lag, one line per sequence (colour) and
+    method (line style), the refined minimum marked (matplotlib's Agg canvas; written atomically)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -209,11 +209,17 @@ def plot_curves(results: list[dict], path: str | Path) -> Path:
     fig = Figure(figsize=(7.5, 4.5), dpi=110)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
+    sequences = list(dict.fromkeys(r["sequence"] for r in results))
+    detectors = list(dict.fromkeys(r["detector"] for r in results))
+    colours = [f"C{i % 10}" for i in range(len(sequences))]  # colour: sequence; line style: detector
+    styles = ["-", "--", ":", "-."]
     for r in results:
         x = [c["lag_ms"] for c in r["curve"]]
         y = [c["mean_distance_px"] for c in r["curve"]]
-        line, = ax.plot(x, y, label=f"{r['detector']} {r['sequence']}: {r['lag_ms']:.1f} ms")
-        ax.axvline(r["lag_ms"], color=line.get_color(), lw=0.6, ls=":")
+        colour = colours[sequences.index(r["sequence"])]
+        ax.plot(x, y, color=colour, ls=styles[detectors.index(r["detector"]) % len(styles)],
+                label=f"{r['detector']} {r['sequence']}: {r['lag_ms']:.1f} ms")
+        ax.axvline(r["lag_ms"], color=colour, lw=0.6, ls=":")
     ax.set_xlabel("lag: corners moved to t - lag [ms]")
     ax.set_ylabel("mean distance keypoint -> corner [px, truncated]")
     ax.set_title("Keypoint lag of time-surface detectors")
