@@ -73,6 +73,11 @@ class CameraCalibration:
             raise ValueError(f"timeshift_cam_imu_us must be finite, got {self.timeshift_cam_imu_us}")
 
     @property
+    def imu_clock_offset_us(self) -> int:
+        """``timeshift_cam_imu_us`` in whole µs, as timestamps are: add it to this camera's times for IMU-clock times."""
+        return int(round(self.timeshift_cam_imu_us))
+
+    @property
     def K(self) -> np.ndarray:
         """(3, 3) intrinsic matrix."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])

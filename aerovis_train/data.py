@@ -90,7 +90,7 @@ class SequenceInfo:
 
     def T_world_cam(self, cam: str, t_us: int) -> np.ndarray:
         """(4, 4) pose of ``cam`` at its own clock's ``t_us`` (the GT, on the IMU clock, at ``t_us`` + its timeshift)."""
-        t_imu = t_us + int(round(self.calib.cameras[cam].timeshift_cam_imu_us))
+        t_imu = t_us + self.calib.cameras[cam].imu_clock_offset_us
         T_world_body = geo.pose7_to_matrix(geo.interpolate_poses([t_imu], self.gt_t, self.gt_pose)[0])
         return T_world_body @ self.calib.cameras[cam].T_imu_cam
 
@@ -98,7 +98,7 @@ class SequenceInfo:
         """Frame indices with GT coverage and at least ``min_history_us`` of events before them."""
         t = self.frame_times[cam]
         first = self.first_event[cam]
-        t_imu = t + int(round(self.calib.cameras[cam].timeshift_cam_imu_us))
+        t_imu = t + self.calib.cameras[cam].imu_clock_offset_us
         ok = (t_imu >= self.gt_t[0]) & (t_imu <= self.gt_t[-1])
         ok &= (t >= first + min_history_us) if first is not None else False
         return np.flatnonzero(ok)

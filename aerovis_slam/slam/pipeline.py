@@ -133,7 +133,7 @@ def _open_inputs(path: Path):
         ranges = [seq.time_range(c) for c in ("cam0", "cam1")]
     # events move onto the IMU clock (Kalibr's t_imu = t_cam + timeshift_cam_imu); all times after
     # this point, frames and outputs included, are IMU-clock times
-    shifts = {c: int(round(calib.cameras[c].timeshift_cam_imu_us)) for c in ("cam0", "cam1")}
+    shifts = {c: calib.cameras[c].imu_clock_offset_us for c in ("cam0", "cam1")}
     ranges = [None if r is None else (r[0] + shifts[c], r[1] + shifts[c]) for r, c in zip(ranges, ("cam0", "cam1"))]
     return calib, imu, ranges, shifts
 

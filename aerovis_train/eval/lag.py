@@ -122,7 +122,7 @@ def keypoint_lag(seq_path: str | Path, detector, *, cam: str = "cam0", lags_ms=D
         if camcal.distortion_model != "none":
             raise DataError(path, f"{cam} has {camcal.distortion_model} distortion: the keypoint lag needs a pinhole camera (the simulator's)")
         W, H = seq.sensor_size(cam)
-        shift = int(round(camcal.timeshift_cam_imu_us))
+        shift = camcal.imu_clock_offset_us
         n_ring = int(events_per_window(params, W, H).max()) if kind == "ne" else 1
         warm_t = int(seq.events_by_index(cam, min(n_ring, seq.num_events(cam) - 1), min(n_ring, seq.num_events(cam) - 1) + 1).t[0]) \
             if kind == "ne" else seq.time_range(cam)[0] + int(max(params) * 1000)

@@ -494,7 +494,7 @@ def plan_frames(
         params = tuple(float(v) for v in (mcts_params or MCTS_DT_WINDOWS_MS))
         warm_t = tr[0] + int(round(max(params) * 1000))
     # frames are on the camera's clock; the GT (like the IMU) is at t_cam + timeshift_cam_imu
-    shift = int(round(camcal.timeshift_cam_imu_us))
+    shift = camcal.imu_clock_offset_us
     t_lo = max(int(gt.t[0]) - shift, warm_t, warm_t if t_start_us is None else int(t_start_us))
     t_hi = min(int(gt.t[-1]) - shift, tr[1])
     if t_hi <= t_lo:
