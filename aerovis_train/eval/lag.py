@@ -23,11 +23,11 @@ import cv2
 import numpy as np
 
 from aerovis_slam.errors import DataError
-from aerovis_slam.geometry import invert_T
+from aerovis_slam.geometry import invert_T, sample_depth_nearest, warp_pixels
 from aerovis_slam.io.sequence import Sequence, camera_key
-from aerovis_slam.mcts import MCTS_DT_WINDOWS_MS, MCTS_NE_EVENTS_PER_PX, TimestampBuffer, events_per_window
+from aerovis_slam.mcts import MCTS_DT_WINDOWS_MS, MCTS_NE_EVENTS_PER_PX, TimestampBuffer
 
-from .pose import _stream_surfaces, interpolate_poses
+from .pose import _stream_surfaces, _truncate, interpolate_poses, mcts_warm_up_us
 
 #: Lags tried (ms): behind (positive) and, as a check, ahead of the time stamp.
 DEFAULT_LAGS_MS = tuple(range(-30, 91, 5))
@@ -37,16 +37,12 @@ def corners_at_lags(corners_px: np.ndarray, depth_m: np.ndarray, K: np.ndarray, 
                     T_world_cam_lags: np.ndarray) -> np.ndarray:
     """Pixels (L, N, 2) where the scene points behind ``corners_px`` (N, 2) at z-depth ``depth_m``
     (N,), seen by the pinhole ``K`` from ``T_world_cam`` (4, 4), appear from each of the poses
-    ``T_world_cam_lags`` (L, 4, 4). Points behind a camera come out as NaN."""
-    rays = np.linalg.solve(K, np.c_[corners_px, np.ones(len(corners_px))].T).T
-    X_world = (T_world_cam[:3, :3] @ (rays * depth_m[:, None]).T).T + T_world_cam[:3, 3]
+    ``T_world_cam_lags`` (L, 4, 4). Points behind a camera come out as NaN (no image bounds: a
+    corner just outside still counts as the nearest one to a keypoint at the border)."""
     out = np.full((len(T_world_cam_lags), len(corners_px), 2), np.nan)
     for i, T in enumerate(T_world_cam_lags):
-        T_cam_world = invert_T(T)
-        Xc = (T_cam_world[:3, :3] @ X_world.T).T + T_cam_world[:3, 3]
-        front = Xc[:, 2] > 1e-6
-        uv = (K @ Xc[front].T).T
-        out[i, front] = uv[:, :2] / uv[:, 2:3]
+        xy, valid = warp_pixels(corners_px, depth_m, K, K, invert_T(T) @ T_world_cam)
+        out[i, valid] = xy[valid]
     return out
 
 
@@ -123,9 +119,7 @@ def keypoint_lag(seq_path: str | Path, detector, *, cam: str = "cam0", lags_ms=D
             raise DataError(path, f"{cam} has {camcal.distortion_model} distortion: the keypoint lag needs a pinhole camera (the simulator's)")
         W, H = seq.sensor_size(cam)
         shift = camcal.imu_clock_offset_us
-        n_ring = int(events_per_window(params, W, H).max()) if kind == "ne" else 1
-        warm_t = int(seq.events_by_index(cam, min(n_ring, seq.num_events(cam) - 1), min(n_ring, seq.num_events(cam) - 1) + 1).t[0]) \
-            if kind == "ne" else seq.time_range(cam)[0] + int(max(params) * 1000)
+        warm_t = mcts_warm_up_us(seq, cam, kind, params)
         margin = int(margin_s * 1e6)
         lag_max = int(max(abs(lags[0]), abs(lags[-1])) * 1000)
         common = np.intersect1d(frame_t, depth_t)
@@ -152,16 +146,13 @@ def keypoint_lag(seq_path: str | Path, detector, *, cam: str = "cam0", lags_ms=D
         sums = np.zeros(len(lags))
         within = np.zeros(len(lags))
         n_kp = 0
-        windows, frames_used = [], 0
+        windows = []
         per_frame_t = []
         for k, mcts in _stream_surfaces(seq, cam, times, buf, compute):
             t = int(times[k])
             if kind == "ne":
                 windows.append(buf.ne_windows_us(t, params))
-            kp = detector(mcts)
-            xy = np.asarray(kp.xy, np.float64)
-            if len(xy) > top_k:
-                xy = xy[np.argsort(-np.asarray(kp.scores), kind="stable")[:top_k]]
+            xy = np.asarray(_truncate(detector(mcts), top_k).xy, np.float64)
             img = seq.frame(cam, frame_index[t])
             corners = cv2.goodFeaturesToTrack(img, max_corners, 0.01, 3)
             if corners is None or len(xy) == 0:
@@ -169,7 +160,7 @@ def keypoint_lag(seq_path: str | Path, detector, *, cam: str = "cam0", lags_ms=D
             corners = cv2.cornerSubPix(img, corners.astype(np.float32), (3, 3), (-1, -1),
                                        (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01)).reshape(-1, 2)
             depth = seq.frame(cam, depth_index[t], "depth")
-            z = depth[np.clip(np.round(corners[:, 1]).astype(int), 0, H - 1), np.clip(np.round(corners[:, 0]).astype(int), 0, W - 1)]
+            z = sample_depth_nearest(depth, corners)
             good = np.isfinite(z) & (z > 0)
             if not good.any():
                 continue
@@ -179,7 +170,6 @@ def keypoint_lag(seq_path: str | Path, detector, *, cam: str = "cam0", lags_ms=D
             sums += np.minimum(d, radius_px).sum(1)
             within += (d < 1.0).sum(1)
             n_kp += len(xy)
-            frames_used += 1
             per_frame_t.append(t)
         if n_kp == 0:
             raise DataError(path, f"no keypoints or no corners with depth on {len(times)} frames of {cam}")
@@ -189,7 +179,7 @@ def keypoint_lag(seq_path: str | Path, detector, *, cam: str = "cam0", lags_ms=D
         epp = [(seq.index_at(cam, t + 1) - seq.index_at(cam, t + 1 - int(round(lag * 1000)))) / (W * H)
                for t in per_frame_t] if lag > 0 else [0.0]
     return {
-        "sequence": path.stem, "detector": str(name), "cam": cam, "mcts": kind, "frames": frames_used, "keypoints": n_kp,
+        "sequence": path.stem, "detector": str(name), "cam": cam, "mcts": kind, "frames": len(per_frame_t), "keypoints": n_kp,
         "lag_ms": lag, "lag_events_per_px": float(np.median(epp)),
         "mcts_windows_ms": (np.median(np.array(windows), axis=0) / 1000).round(2).tolist() if windows else None,
         "curve": [{"lag_ms": float(L), "mean_distance_px": float(m), "within_1px": float(w / n_kp)}

@@ -404,6 +404,17 @@ def _stream_surfaces(seq: Sequence, cam: str, taus: np.ndarray, buf: TimestampBu
         k += 1
 
 
+def mcts_warm_up_us(seq: Sequence, cam: str, mcts_kind: str, params) -> int:
+    """First time (µs, camera clock) at which ``cam``'s MCTS is complete: the event that fills the
+    longest MCTS_Ne window (the last event if there are fewer), or the first event plus the longest
+    MCTS_dt window. ``cam`` must hold events."""
+    if mcts_kind == "ne":
+        W, H = seq.sensor_size(cam)
+        n_warm = min(int(events_per_window(params, W, H).max()), seq.num_events(cam) - 1)
+        return int(seq.events_by_index(cam, n_warm, n_warm + 1).t[0])
+    return seq.time_range(cam)[0] + int(round(max(params) * 1000))
+
+
 def _truncate(kp: Keypoints, top_k: int) -> Keypoints:
     if len(kp) <= top_k:
         return kp
@@ -486,13 +497,8 @@ def plan_frames(
     tr = seq.time_range(cam)
     if tr is None:
         raise DataError(path, f"/events/{cam} holds no events")
-    if mcts_kind == "ne":
-        params = tuple(float(v) for v in (mcts_params or MCTS_NE_EVENTS_PER_PX))
-        n_warm = min(int(events_per_window(params, W, H).max()), seq.num_events(cam) - 1)
-        warm_t = int(seq.events_by_index(cam, n_warm, n_warm + 1).t[0])
-    else:
-        params = tuple(float(v) for v in (mcts_params or MCTS_DT_WINDOWS_MS))
-        warm_t = tr[0] + int(round(max(params) * 1000))
+    params = tuple(float(v) for v in (mcts_params or (MCTS_NE_EVENTS_PER_PX if mcts_kind == "ne" else MCTS_DT_WINDOWS_MS)))
+    warm_t = mcts_warm_up_us(seq, cam, mcts_kind, params)
     # frames are on the camera's clock; the GT (like the IMU) is at t_cam + timeshift_cam_imu
     shift = camcal.imu_clock_offset_us
     t_lo = max(int(gt.t[0]) - shift, warm_t, warm_t if t_start_us is None else int(t_start_us))
