@@ -130,7 +130,7 @@ class EventReader:
         return any(t.is_alive() for t in self._threads.values())
 
 
-#: Bound of :meth:`EventFeeder.observation_time`'s lag: after a stretch without events the N-th
+#: Bound of :func:`observation_time`'s lag: after a stretch without events the N-th
 #: newest event can be seconds old, while the keypoints then show edges that moved since (such
 #: frames carry few new events and are propagated with the IMU anyway).
 MAX_OBSERVATION_LAG_US = 50_000
