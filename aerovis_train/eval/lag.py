@@ -27,6 +27,7 @@ from aerovis_slam.geometry import invert_T, sample_depth_nearest, warp_pixels
 from aerovis_slam.io.sequence import Sequence, camera_key
 from aerovis_slam.mcts import MCTS_DT_WINDOWS_MS, MCTS_NE_EVENTS_PER_PX, TimestampBuffer
 
+from ..labels import CornerLabeller
 from .pose import _stream_surfaces, _truncate, interpolate_poses, mcts_warm_up_us
 
 #: Lags tried (ms): behind (positive) and, as a check, ahead of the time stamp.
@@ -140,6 +141,8 @@ def keypoint_lag(seq_path: str | Path, detector, *, cam: str = "cam0", lags_ms=D
             detector = make_detector(detector, top_k=top_k)
         else:
             name = getattr(detector, "name", type(detector).__name__)
+        # the training labeller's Shi-Tomasi corners, denser and weaker ones too (quality 0.01, 3 px apart)
+        find_corners = CornerLabeller(max_corners=max_corners, quality=0.01, min_distance=3, block_size=3)
         buf = TimestampBuffer(W, H, events_per_px=params if kind == "ne" else (1e-9,))
         compute = (lambda tau: buf.mcts_ne(tau, params)) if kind == "ne" else (lambda tau: buf.mcts_dt(tau, params))
         K = camcal.K
@@ -154,10 +157,10 @@ def keypoint_lag(seq_path: str | Path, detector, *, cam: str = "cam0", lags_ms=D
                 windows.append(buf.ne_windows_us(t, params))
             xy = np.asarray(_truncate(detector(mcts), top_k).xy, np.float64)
             img = seq.frame(cam, frame_index[t])
-            corners = cv2.goodFeaturesToTrack(img, max_corners, 0.01, 3)
-            if corners is None or len(xy) == 0:
+            corners = find_corners(img)
+            if len(corners) == 0 or len(xy) == 0:
                 continue
-            corners = cv2.cornerSubPix(img, corners.astype(np.float32), (3, 3), (-1, -1),
+            corners = cv2.cornerSubPix(img, corners, (3, 3), (-1, -1),
                                        (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01)).reshape(-1, 2)
             depth = seq.frame(cam, depth_index[t], "depth")
             z = sample_depth_nearest(depth, corners)
