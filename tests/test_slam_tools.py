@@ -20,7 +20,7 @@ from aerovis_slam.keypoints import Keypoints
 from aerovis_slam.measurements import PoseSamples
 from aerovis_slam.slam import bench as bench_mod
 from aerovis_slam.slam.cli import main
-from aerovis_slam.slam.loop import LoopCloser, descriptor_vectors, train_vocabulary, vlad
+from aerovis_slam.slam.loop import LoopCloser, _Snapshot, descriptor_vectors, split_yaw, train_vocabulary, vlad
 from aerovis_slam.slam.trajectory import ate, final_trajectory, is_partial, read_tum, rpe, write_tum
 
 
@@ -291,6 +291,61 @@ def test_loop_closure_corrects_drift_in_background(vocabulary):
     with pytest.raises(RuntimeError, match="closed"):
         closer.add_keyframe(999, 0, np.eye(4), Keypoints(np.zeros((0, 2)), np.zeros(0), np.zeros((0, 64))), np.zeros((0, 3)),
                             np.zeros(0, bool), K, T_BODY_CAM)
+
+
+def test_split_yaw_keeps_gravity_direction_for_any_mounting():
+    rng = np.random.default_rng(3)
+    x_up = np.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])  # body x along world z (EuRoC's IMU): no yaw-pitch-roll yaw
+    for R in [so3_exp(rng.normal(size=3)) for _ in range(20)] + [x_up, so3_exp(np.array([0, 0, 2.5])) @ x_up]:
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, rng.normal(size=3)
+        Y, S = split_yaw(T)
+        np.testing.assert_allclose(Y @ S, T, atol=1e-12)
+        np.testing.assert_allclose(Y[:3, 2], [0, 0, 1], atol=1e-12)  # Y turns about world z only
+        assert abs(S[:3, 3]).max() == 0 and abs(np.trace(S[:3, :3]) - 1 - 2 * S[2, 2]) < 1e-9  # S: about a horizontal axis
+    # a turn about z alone is all yaw
+    T = np.eye(4)
+    T[:3, :3] = so3_exp(np.array([0, 0, -1.2]))
+    np.testing.assert_allclose(split_yaw(T)[1], np.eye(4), atol=1e-12)
+
+
+def test_pose_graph_moves_position_and_yaw_only():
+    """A loop measured with a 5 deg roll error on a circle whose odometry drifted in yaw and sideways:
+    the default 4-DoF graph removes the drift and leaves every keyframe's gravity direction as the
+    odometry had it (an IMU observes roll and pitch); a 6-DoF graph tilts the map with the loop."""
+    gt = [circle_pose(np.radians(12.0 * i)) for i in range(30)]
+    E = np.eye(4)
+    E[:3, :3] = so3_exp(np.array([0, 0, 0.004]))
+    E[:3, 3] = [0, 0.005, 0]
+    odom = [gt[0]]
+    for i in range(1, 30):
+        odom.append(odom[-1] @ (invert_T(gt[i - 1]) @ gt[i]) @ E)
+    roll = np.eye(4)
+    roll[:3, :3] = so3_exp(np.array([np.radians(5.0), 0, 0]))
+    T_loop = invert_T(gt[0]) @ gt[29] @ roll  # rotation off by 5 deg of roll, translation exact
+    cov = np.diag([1e-4] * 3 + [1e-4] * 3)
+    edges = [(i - 1, i, invert_T(odom[i - 1]) @ odom[i], None) for i in range(1, 30)] + [(0, 29, T_loop, (1.0, cov))]
+    snap = _Snapshot(list(range(30)), [T.copy() for T in odom], edges)
+
+    def tilt_change_deg(poses):  # angle between the body-frame up directions of each pose and its odometry
+        return max(np.degrees(np.arccos(np.clip(poses[i][:3, :3].T[:, 2] @ odom[i][:3, :3].T[:, 2], -1, 1))) for i in range(30))
+
+    res4 = LoopCloser()._optimise(snap)
+    res6 = LoopCloser(config={"pose_graph_dof": 6})._optimise(snap)
+    drift = np.linalg.norm(odom[29][:3, 3] - gt[29][:3, 3])
+    assert drift > 0.15  # 29 steps of 5 mm sideways and 0.23 deg of yaw
+    # the attitude factors hold the tilt to their 1e-6 rad sigma against a 5 deg (0.087 rad) pull
+    assert tilt_change_deg(res4.poses) < 1e-3
+    assert tilt_change_deg(res6.poses) > 1.0
+    # the loop's translation is exact, its yaw too: the 4-DoF graph pulls the end to within the
+    # loop's 1 cm sigma (measured ~2 mm), as the 6-DoF graph would without the roll error
+    assert np.linalg.norm(res4.poses[29][:3, 3] - gt[29][:3, 3]) < 0.1 * drift
+    # corrections turn about the vertical only: gravity stays where it was
+    for i in range(30):
+        C = res4.poses[i] @ invert_T(odom[i])
+        np.testing.assert_allclose(C[:3, 2], [0, 0, 1], atol=1e-5)
+    with pytest.raises(ValueError, match="pose_graph_dof must be 4"):
+        LoopCloser(config={"pose_graph_dof": 5})
 
 
 def test_place_recognition_finds_revisit_rejects_non_revisit(vocabulary):

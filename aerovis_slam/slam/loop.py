@@ -26,9 +26,15 @@ As in OKVIS2 (REFERENCE.md section 5; paper Fig. 1), in three steps:
 3. **Pose-graph optimisation** (gtsam): keyframe poses linked by relative-pose edges from the
    odometry (``BetweenFactorPose3``, noise growing with the distance of the edge) and by the loop
    edges (``BetweenFactorPose3`` with the first-order covariance of the PnP pose and a Huber robust
-   loss whose quadratic zone spans the drift bound), the first keyframe fixed by a prior, solved by
-   Levenberg-Marquardt (``LevenbergMarquardtOptimizer``) in a background thread. gtsam holds the
-   GIL while it computes, so the thread steps the optimiser one iteration at a time: the caller waits
+   loss whose quadratic zone spans the drift bound), the first keyframe fixed by a prior. By
+   default each keyframe has four degrees of freedom there, position and yaw (``pose_graph_dof``,
+   as in VINS-Mono): the IMU observes roll and pitch (gravity) better than any loop measures them,
+   so a loop must not tilt the map. With full 6-DoF poses one bad loop of the bench preset
+   (handheld_office, 37 cm / 6 deg off) tilted every later output by 10 deg, an attitude error a
+   flight controller would act on (:func:`split_yaw`; ``pose_graph_dof: 6`` remains for a world
+   that is not gravity-aligned). Solved by Levenberg-Marquardt (``LevenbergMarquardtOptimizer``) in
+   a background thread. gtsam holds the GIL while it computes, so the thread steps the optimiser one
+   iteration at a time: the caller waits
    at most one iteration (2-10 ms at 300-1000 keyframes on a 2-core box) instead of the whole
    solve. The caller merges the result with :meth:`LoopCloser.poll`, which never blocks.
 
@@ -61,7 +67,7 @@ import numpy as np
 
 from ..errors import DataError
 from ..fileio import atomic_write_bytes
-from ..geometry import invert_T, pose_difference, project, transform_points
+from ..geometry import invert_T, pose_difference, project, rot_to_quat, so3_exp, transform_points
 from ..keypoints import Keypoints, match_keypoints, pair_similarity
 from .frontend import window_matches
 
@@ -98,6 +104,7 @@ DEFAULT_CONFIG: dict = {
     "loop_sigma_rot_rad": 0.002,  # floors added to the PnP covariance of a loop edge
     "loop_sigma_trans_m": 0.005,
     "loop_huber_k": 1.345,
+    "pose_graph_dof": 4,  # 4: position + yaw (world z up, roll/pitch kept as the odometry has them); 6: full poses
     "max_iterations": 50,
     "relative_error_tol": 1e-6,
     "time_budget_s": 5.0,
@@ -257,6 +264,32 @@ def build_vocabulary(sequences: Iterable[str | os.PathLike], detector, *, frames
     return vocab, meta
 
 
+# -- gravity-aligned pose graph -------------------------------------------------------------------
+def split_yaw(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Split a pose of a z-up world into its yaw frame and its tilt: ``T = Y @ S`` with ``Y`` (4, 4)
+    the position and a rotation about the world z axis, and ``S`` (4, 4) a rotation about a
+    horizontal axis (the swing; no translation).
+
+    The yaw is the twist of the rotation's quaternion about z, ``2 atan2(q_z, q_w)``, which (unlike
+    a yaw-pitch-roll angle) is defined for every attitude but a body turned upside down: IMU frames
+    are mounted with any axis up (EuRoC's x points up). Every pose ``Y' @ S`` keeps the direction of
+    gravity in the body frame, so the 4-DoF pose graph optimises ``Y`` with ``S`` held.
+    """
+    T = np.asarray(T, np.float64)
+    q = rot_to_quat(T[:3, :3])  # (x, y, z, w)
+    Y = np.eye(4)
+    Y[:3, :3] = so3_exp(np.array([0.0, 0.0, 2.0 * np.arctan2(q[2], q[3])]))
+    Y[:3, 3] = T[:3, 3]
+    S = np.eye(4)
+    S[:3, :3] = Y[:3, :3].T @ T[:3, :3]
+    return Y, S
+
+
+def level(T: np.ndarray) -> np.ndarray:
+    """``T`` (4, 4) with its rotation replaced by the rotation's twist about z (:func:`split_yaw`'s ``Y``)."""
+    return split_yaw(T)[0]
+
+
 # -- the loop closer -----------------------------------------------------------------------------
 @dataclass
 class _Keyframe:
@@ -346,6 +379,8 @@ class LoopCloser:
         if unknown:
             raise ValueError(f"unknown loop-closure option(s) {unknown}; known: {sorted(DEFAULT_CONFIG)}")
         self.config = dict(DEFAULT_CONFIG, **(config or {}))
+        if self.config["pose_graph_dof"] not in (4, 6):
+            raise ValueError(f"loop-closure option pose_graph_dof must be 4 (position + yaw) or 6, got {self.config['pose_graph_dof']!r}")
         self.vocabulary = None if vocabulary is None else np.asarray(vocabulary, np.float32)
         self._keyframes: dict[int, _Keyframe] = {}
         self._order: list[int] = []
@@ -767,6 +802,22 @@ class LoopCloser:
         st = c["odometry_sigma_trans_m"] + c["odometry_sigma_trans_per_m"] * dist
         return gtsam.noiseModel.Diagonal.Sigmas(np.array([sr, sr, sr, st, st, st]))  # gtsam Pose3 tangent: rotation first
 
+    @staticmethod
+    def _yaw_covariance(covariance: np.ndarray, tilt_query: np.ndarray) -> np.ndarray:
+        """A loop's (6, 6) covariance (Pose3 tangent of ``T_match_query``) carried to the levelled
+        measurement between yaw frames, ``Z = S_match T S_query^-1``: a perturbation ``T exp(xi)``
+        is ``Z exp(Ad(S_query) xi)``, with ``Ad = diag(R, R)`` for a pure rotation. Roll and pitch
+        are not variables there: the marginal of (yaw, translation) is kept and the tilt rows get
+        a unit variance that the (zero) tilt residual never uses."""
+        A = np.zeros((6, 6))
+        A[:3, :3] = A[3:, 3:] = tilt_query[:3, :3]
+        cz = A @ covariance @ A.T
+        out = np.zeros((6, 6))
+        out[0, 0] = out[1, 1] = 1.0
+        keep = [2, 3, 4, 5]
+        out[np.ix_(keep, keep)] = 0.5 * (cz[np.ix_(keep, keep)] + cz[np.ix_(keep, keep)].T)
+        return out
+
     def _loop_noise(self, bound_m: float, covariance: np.ndarray):
         """Huber-robust loop-edge noise (the PnP covariance) whose quadratic zone spans the drift
         that verification allowed.
@@ -779,7 +830,8 @@ class LoopCloser:
         import gtsam
 
         c = self.config
-        sr = float(np.sqrt(np.linalg.eigvalsh(covariance[:3, :3]).max()))
+        # rotation sigma: the yaw's alone in a 4-DoF graph (its tilt rows are placeholders)
+        sr = float(np.sqrt(covariance[2, 2] if int(c["pose_graph_dof"]) == 4 else np.linalg.eigvalsh(covariance[:3, :3]).max()))
         st = float(np.sqrt(np.linalg.eigvalsh(covariance[3:, 3:]).max()))
         k = max(c["loop_huber_k"], bound_m / st, np.radians(c["max_rotation_drift_deg"]) / sr)
         return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(float(k)),
@@ -793,13 +845,26 @@ class LoopCloser:
         ids = set(snap.ids)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
+        four_dof = int(c["pose_graph_dof"]) == 4
+        # 4-DoF: the variables are the keyframes' yaw frames Y (T = Y @ S, tilt S held); each
+        # edge's measurement is carried into them (Z = S_a T_ab S_b^-1, levelled) and an attitude
+        # factor keeps each Y level, so only position and yaw move.
+        tilt = {i: split_yaw(T)[1] if four_dof else np.eye(4) for i, T in zip(snap.ids, snap.poses)}
         for i, T in zip(snap.ids, snap.poses):
-            values.insert(i, gtsam.Pose3(T))
-        graph.add(gtsam.PriorFactorPose3(snap.ids[0], gtsam.Pose3(snap.poses[0]), gtsam.noiseModel.Constrained.All(6)))
+            values.insert(i, gtsam.Pose3(T @ invert_T(tilt[i])))
+            if four_dof:
+                graph.add(gtsam.AttitudeFactorPose3(i, gtsam.Unit3(np.array([0.0, 0.0, 1.0])), gtsam.noiseModel.Isotropic.Sigma(2, 1e-6),
+                                                    gtsam.Unit3(np.array([0.0, 0.0, 1.0]))))
+        graph.add(gtsam.PriorFactorPose3(snap.ids[0], values.atPose3(snap.ids[0]), gtsam.noiseModel.Constrained.All(6)))
         for a, b, T, loop in snap.edges:
             if a in ids and b in ids:
-                noise = self._edge_noise(T) if loop is None else self._loop_noise(*loop)
-                graph.add(gtsam.BetweenFactorPose3(a, b, gtsam.Pose3(T), noise))
+                if four_dof:
+                    Z = level(tilt[a] @ T @ invert_T(tilt[b]))
+                    noise = self._edge_noise(T) if loop is None else self._loop_noise(loop[0], self._yaw_covariance(loop[1], tilt[b]))
+                else:
+                    Z = T
+                    noise = self._edge_noise(T) if loop is None else self._loop_noise(*loop)
+                graph.add(gtsam.BetweenFactorPose3(a, b, gtsam.Pose3(Z), noise))
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(int(c["max_iterations"]))
         opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
@@ -818,5 +883,5 @@ class LoopCloser:
         if self._stop:
             return None
         result = opt.values()
-        poses = {i: result.atPose3(i).matrix() for i in snap.ids}
+        poses = {i: result.atPose3(i).matrix() @ tilt[i] for i in snap.ids}
         return _Result(poses, it, float(err0), float(err), time.perf_counter() - t0)
