@@ -635,12 +635,14 @@ def test_bench_repeats_perturb_and_aggregate(tmp_path, monkeypatch, empty_config
     pct = {(r["detector"], r["repeat"]): r["ate_pct"] for r in rows}
     table = (tmp_path / "b" / "table.md").read_text()
     mean_l = (pct[("learned", 0)] + pct[("learned", 1)] + pct[("learned", 2)]) / 3
-    assert f"{mean_l:.2f} ({pct[('learned', 0)]:.2f}-{pct[('learned', 2)]:.2f})" in table
+    assert f"{mean_l:.2f} ({pct[('learned', 0)]:.2f}-{pct[('learned', 2)]:.2f}), median {pct[('learned', 1)]:.2f}" in table
     assert f"**{pct[('classical-orb', 0)]:.2f} (" in table  # 1.5 cm every time beats the mean of 1, 2, 3 cm
     s = bench_mod.summarize(rows)
     # the first runs: learned (1 cm) best; the means: classical (1.5 < 2 cm) best
     assert s["learned/sync"]["best_on"] == 1 and s["learned/sync"]["best_on_mean"] == 0
     assert s["classical-orb/sync"]["best_on_mean"] == 1 and s["classical-orb/sync"]["repeats"] == 3
+    # the medians: 2 cm against 1.5 cm, classical again
+    assert s["classical-orb/sync"]["best_on_median"] == 1 and s["learned/sync"]["best_on_median"] == 0
     assert s["learned/sync"]["runs"] == 1  # the headline counts describe the first runs
     # resume reads the noise back from metrics.json
     again = bench_mod.run_bench([seq], dets, tmp_path / "b", modes=("sync",), config=str(empty_config), loop=False,
@@ -652,6 +654,20 @@ def test_bench_repeats_perturb_and_aggregate(tmp_path, monkeypatch, empty_config
     assert main(["bench", "--sequences", str(seq), "--detector", "orb", "--no-learned", "--repeats", "2",
                  "--keypoint-noise-px", "0", "--out", str(tmp_path / "d"), "--quiet"]) == 2
     assert "--repeats 2" in capsys.readouterr().err
+
+
+def test_bench_median_counts_failures_as_worst():
+    """The paper's Table I: the median of 5 runs, failed when at least 3 crash or diverge."""
+    def runs(*pcts):
+        return [{"status": "ok", "ate_pct": p} if p is not None else {"status": "diverged", "ate_pct": 80.0} for p in pcts]
+
+    assert bench_mod._median_ate_pct(runs(3.0, 1.0, 2.0, 5.0, 4.0)) == 3.0
+    assert bench_mod._median_ate_pct(runs(3.0, None, 2.0, None, 4.0)) == 4.0  # two failed: the median is the worst ok run
+    assert bench_mod._median_ate_pct(runs(3.0, None, 2.0, None, None)) is None  # three failed: failed
+    assert bench_mod._median_ate_pct(runs(1.0, 2.0, 3.0, 6.0)) == 2.5
+    assert bench_mod._median_ate_pct(runs(1.0, 2.0, 3.0, None)) == 2.5
+    assert bench_mod._median_ate_pct(runs(1.0, 2.0, None, None)) is None
+    assert bench_mod._median_ate_pct([]) is None
 
 
 def test_perturb_keypoints_is_seeded_bounded_and_inside():
