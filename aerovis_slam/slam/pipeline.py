@@ -42,7 +42,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..errors import DataError
-from ..geometry import matrix_to_pose7
+from ..geometry import invert_T, matrix_to_pose7
 from ..io.sequence import Sequence
 from .cameras import StereoCameras
 from .config import MODES, SlamConfig, load_config
@@ -206,8 +206,17 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
     def record(res, tau: int, latency_us: float, pre_ms: float, mcts_ms: float, proc_ms: float):
         nonlocal shown
         if odo.rotate_outputs is not None:  # gravity became known: earlier outputs into the world frame
+            # ... and anchored to the keyframe of the initialisation: the alignment's gravity is off
+            # by several degrees on handheld starts (6-27 deg on the bench preset's handheld
+            # sequences), which the smoother corrects within a second; the final trajectory then
+            # carries that correction back over the vision-only stretch, as it does for later outputs
+            T_kf = None
+            if res.anchor_kf >= 0 and res.T_kf_body is not None:
+                T_kf = invert_T(res.T_corr) @ res.T_world_body @ invert_T(res.T_kf_body)  # its odometry pose
             for i in range(len(T_out)):
                 T_out[i] = odo.rotate_outputs @ T_out[i]
+                if T_kf is not None and anchors[i][0] < 0:
+                    anchors[i] = (res.anchor_kf, invert_T(T_kf) @ invert_T(res.T_corr) @ T_out[i], res.T_corr)
             odo.rotate_outputs = None
         t_out.append(int(tau))
         T_out.append(res.T_world_body)
