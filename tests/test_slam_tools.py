@@ -637,6 +637,9 @@ def test_bench_repeats_perturb_and_aggregate(tmp_path, monkeypatch, empty_config
     mean_l = (pct[("learned", 0)] + pct[("learned", 1)] + pct[("learned", 2)]) / 3
     assert f"{mean_l:.2f} ({pct[('learned', 0)]:.2f}-{pct[('learned', 2)]:.2f}), median {pct[('learned', 1)]:.2f}" in table
     assert f"**{pct[('classical-orb', 0)]:.2f} (" in table  # 1.5 cm every time beats the mean of 1, 2, 3 cm
+    # the final trajectories' spread (the fake's final trajectory is the ground truth: 0 %, a tie)
+    final_table = table.split("final trajectories (`traj_final.txt`): mean (min-max) and median")[1]
+    assert "| tiny_a | **0.00 (0.00-0.00), median 0.00** | **0.00 (0.00-0.00), median 0.00** |" in final_table
     s = bench_mod.summarize(rows)
     # the first runs: learned (1 cm) best; the means: classical (1.5 < 2 cm) best
     assert s["learned/sync"]["best_on"] == 1 and s["learned/sync"]["best_on_mean"] == 0

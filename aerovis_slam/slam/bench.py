@@ -272,21 +272,22 @@ def _spread_cells(rows: list[dict]) -> dict[tuple[str, str, str], list[dict]]:
     return out
 
 
-def _mean_ate_pct(runs: list[dict]) -> float | None:
-    """Mean ATE % of path over ``runs`` when every one is ``ok`` (a failure cannot be averaged away)."""
-    if not runs or any(r["status"] != "ok" or r["ate_pct"] is None for r in runs):
+def _mean_ate_pct(runs: list[dict], key: str = "ate_pct") -> float | None:
+    """Mean ATE % of path (``key``: ``ate_pct`` live, ``ate_pct_final`` the final trajectory) over
+    ``runs`` when every one is ``ok`` (a failure cannot be averaged away)."""
+    if not runs or any(r["status"] != "ok" or r.get(key) is None for r in runs):
         return None
-    return float(np.mean([r["ate_pct"] for r in runs]))
+    return float(np.mean([r[key] for r in runs]))
 
 
-def _median_ate_pct(runs: list[dict]) -> float | None:
+def _median_ate_pct(runs: list[dict], key: str = "ate_pct") -> float | None:
     """Median ATE % of path over ``runs`` as the paper's Table I counts it (the median of 5 runs; a
     system that crashes or diverges in at least 3 of them is marked failed): a run that is not
     ``ok`` counts as infinitely bad, so the median exists while fewer than half the runs failed.
     None when it does not (or there are no runs)."""
     if not runs:
         return None
-    med = float(np.median([r["ate_pct"] if r["status"] == "ok" and r["ate_pct"] is not None else np.inf for r in runs]))
+    med = float(np.median([r[key] if r["status"] == "ok" and r.get(key) is not None else np.inf for r in runs]))
     return med if np.isfinite(med) else None
 
 
@@ -348,6 +349,30 @@ def format_table(rows: list[dict]) -> str:
                   "ATE [% of path], live outputs above.", ""]
         lines += first_run_table(lambda r: "" if r.get("ate_pct_final") is None or r["status"] != "ok" else f"{r['ate_pct_final']:.2f} %")
     spread = _spread_cells(all_rows)
+
+    def spread_table(key: str) -> list[str]:
+        out = header(False)
+        for s in seqs:
+            means = {(d, m): _mean_ate_pct(spread.get((s, d, m), []), key) for d, m in cols}
+            finite = [v for v in means.values() if v is not None]
+            vals = []
+            for d, m in cols:
+                runs = spread.get((s, d, m), [])
+                bad = [r for r in runs if r["status"] != "ok" or r.get(key) is None]
+                pct = [r[key] for r in runs if r["status"] == "ok" and r.get(key) is not None]
+                med = _median_ate_pct(runs, key)
+                med_txt = f"median {med:.2f}" if med is not None else "median failed"
+                if not runs:
+                    vals.append("")
+                elif bad:
+                    vals.append(", ".join(f"r{_repeat(r)} {r['status'] if r['status'] != 'ok' else 'no value'}" for r in bad)
+                                + (f"; ok: {min(pct):.2f}-{max(pct):.2f}" if pct else "") + f"; {med_txt}")
+                else:
+                    txt = f"{means[(d, m)]:.2f} ({min(pct):.2f}-{max(pct):.2f}), {med_txt}"
+                    vals.append(f"**{txt}**" if len(finite) > 1 and means[(d, m)] == min(finite) else txt)
+            out.append(f"| {s} | " + " | ".join(vals) + " |")
+        return out
+
     n_rep = max((len(v) for v in spread.values()), default=1)
     if n_rep > 1:
         noise = max(float(r.get("keypoint_noise_px", 0.0)) for r in all_rows)
@@ -355,26 +380,10 @@ def format_table(rows: list[dict]) -> str:
                   f"{n_rep - 1} with +-{noise:g} px of seeded keypoint noise): mean (min-max) and median; the best mean "
                   "per row in bold. A cell with a run that is not ok has no mean and names the runs that failed; "
                   "its median counts them as worst (the paper's Table I: the median of 5 runs, failed when 3 fail).", ""]
-        lines += header(False)
-        for s in seqs:
-            means = {(d, m): _mean_ate_pct(spread.get((s, d, m), [])) for d, m in cols}
-            finite = [v for v in means.values() if v is not None]
-            vals = []
-            for d, m in cols:
-                runs = spread.get((s, d, m), [])
-                bad = [r for r in runs if r["status"] != "ok"]
-                pct = [r["ate_pct"] for r in runs if r["status"] == "ok" and r["ate_pct"] is not None]
-                med = _median_ate_pct(runs)
-                med_txt = f"median {med:.2f}" if med is not None else "median failed"
-                if not runs:
-                    vals.append("")
-                elif bad:
-                    vals.append(", ".join(f"r{_repeat(r)} {r['status']}" for r in bad)
-                                + (f"; ok: {min(pct):.2f}-{max(pct):.2f}" if pct else "") + f"; {med_txt}")
-                else:
-                    txt = f"{means[(d, m)]:.2f} ({min(pct):.2f}-{max(pct):.2f}), {med_txt}"
-                    vals.append(f"**{txt}**" if len(finite) > 1 and means[(d, m)] == min(finite) else txt)
-            lines.append(f"| {s} | " + " | ".join(vals) + " |")
+        lines += spread_table("ate_pct")
+        if any(r.get("ate_pct_final") is not None for r in all_rows):
+            lines += ["", "The same runs' final trajectories (`traj_final.txt`): mean (min-max) and median ATE [% of path].", ""]
+            lines += spread_table("ate_pct_final")
     return "\n".join(lines) + "\n"
 
 
