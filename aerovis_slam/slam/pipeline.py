@@ -207,11 +207,11 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
         nonlocal shown
         if odo.rotate_outputs is not None:  # gravity became known: earlier outputs into the world frame
             # ... and anchored to the keyframe of the initialisation: the alignment's gravity is off
-            # by several degrees on handheld starts (6-27 deg on the bench preset's handheld
-            # sequences), which the smoother corrects within a second; the final trajectory then
-            # carries that correction back over the vision-only stretch, as it does for later outputs
+            # by degrees (1.7-17 deg on the bench preset's starts, up to 3.5x its own sigma), which
+            # the smoother corrects within a second; the final trajectory then carries that
+            # correction back over the vision-only stretch, as it does for later outputs
             T_kf = None
-            if res.anchor_kf >= 0 and res.T_kf_body is not None:
+            if res.anchor_kf >= 0 and res.T_kf_body is not None and res.T_corr is not None:
                 T_kf = invert_T(res.T_corr) @ res.T_world_body @ invert_T(res.T_kf_body)  # its odometry pose
             for i in range(len(T_out)):
                 T_out[i] = odo.rotate_outputs @ T_out[i]
