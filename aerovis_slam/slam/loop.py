@@ -849,9 +849,11 @@ class LoopCloser:
         # 4-DoF: the variables are the keyframes' yaw frames Y (T = Y @ S, tilt S held); each
         # edge's measurement is carried into them (Z = S_a T_ab S_b^-1, levelled) and an attitude
         # factor keeps each Y level, so only position and yaw move.
-        tilt = {i: split_yaw(T)[1] if four_dof else np.eye(4) for i, T in zip(snap.ids, snap.poses)}
+        variables, tilt = {}, {}
         for i, T in zip(snap.ids, snap.poses):
-            values.insert(i, gtsam.Pose3(T @ invert_T(tilt[i])))
+            variables[i], tilt[i] = split_yaw(T) if four_dof else (T, np.eye(4))
+        for i in snap.ids:
+            values.insert(i, gtsam.Pose3(variables[i]))
             if four_dof:
                 graph.add(gtsam.AttitudeFactorPose3(i, gtsam.Unit3(np.array([0.0, 0.0, 1.0])), gtsam.noiseModel.Isotropic.Sigma(2, 1e-6),
                                                     gtsam.Unit3(np.array([0.0, 0.0, 1.0]))))

@@ -210,13 +210,13 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
             # by degrees (1.7-17 deg on the bench preset's starts, up to 3.5x its own sigma), which
             # the smoother corrects within a second; the final trajectory then carries that
             # correction back over the vision-only stretch, as it does for later outputs
-            T_kf = None
-            if res.anchor_kf >= 0 and res.T_kf_body is not None and res.T_corr is not None:
-                T_kf = invert_T(res.T_corr) @ res.T_world_body @ invert_T(res.T_kf_body)  # its odometry pose
+            # (an output's pose in that keyframe: its pose relative to this output, then this
+            # output's own T_kf_body)
+            to_kf = None if res.anchor_kf < 0 or res.T_kf_body is None else res.T_kf_body @ invert_T(res.T_world_body)
             for i in range(len(T_out)):
                 T_out[i] = odo.rotate_outputs @ T_out[i]
-                if T_kf is not None and anchors[i][0] < 0:
-                    anchors[i] = (res.anchor_kf, invert_T(T_kf) @ invert_T(res.T_corr) @ T_out[i], res.T_corr)
+                if to_kf is not None and anchors[i][0] < 0:
+                    anchors[i] = (res.anchor_kf, to_kf @ T_out[i], res.T_corr)
             odo.rotate_outputs = None
         t_out.append(int(tau))
         T_out.append(res.T_world_body)
