@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from aerovis_slam.errors import DataError
-from aerovis_slam.geometry import pose7_to_matrix, rotation_angle_deg, so3_exp
+from aerovis_slam.geometry import interpolate_poses, pose7_to_matrix, rotation_angle_deg, so3_exp
 from aerovis_slam.io.sequence import Sequence
 from aerovis_slam.measurements import PoseSamples
 from aerovis_slam.sim import SequenceSpec, Simulator, write_sequence
@@ -22,6 +22,7 @@ from aerovis_slam.slam.cameras import StereoCameras
 from aerovis_slam.slam.config import SlamConfig, load_config
 from aerovis_slam.slam.detectors import StereoClassicalDetector
 from aerovis_slam.slam.frontend import project_landmarks
+from aerovis_slam.slam.odometry import StereoInertialOdometry
 from aerovis_slam.slam.imu import ImuStream, align_visual_inertial, new_preintegration, preintegration_params
 from aerovis_slam.slam.pipeline import run_slam
 from aerovis_slam.slam.ransac import (bearings, pnp_ransac, position_given_rotation, project_points, reprojection_error,
@@ -293,6 +294,67 @@ def test_smoother_and_tracking_on_exact_observations():
     assert len(sm.kf_ids) <= cfg.backend.window_keyframes  # older keyframes were marginalised
 
 
+def _tilt_deg(R_est: np.ndarray, R_true: np.ndarray) -> float:
+    """Angle (deg) between the estimated and the true gravity direction in the body frame (yaw-free)."""
+    return float(np.degrees(np.arccos(np.clip(R_est[2] @ R_true[2], -1.0, 1.0))))
+
+
+@pytest.mark.parametrize("bundle_adjustment", [True, False])
+def test_initialisation_bundle_adjustment_corrects_the_alignments_gravity(bundle_adjustment):
+    """The visual-inertial alignment hands over gravity 8 deg off (as on the bench preset's starts:
+    1.7-17 deg). Eight keyframes of vision-only tracking over 0.84 s of a handheld path (vision
+    frame = the world turned by 25 deg; poses 1 cm off, landmarks 2 cm off, 0.5 px observations; the
+    simulator's noisy DAVIS IMU; the alignment's velocities only for the newest three keyframes) hold
+    gravity: with ``init.bundle_adjustment`` the smoother starts with them and the newest state's
+    tilt comes within 1 deg of the truth (measured 0.3-0.7 deg over four noise seeds: the prior on
+    the oldest keyframe, no tighter than the alignment's 6 deg sigma, still pulls), the keyframes
+    are the window and the landmarks move with the estimate. Without it the window is the newest
+    frame alone, which keeps the 8 deg."""
+    spec = SequenceSpec("ba", rig="davis240_stereo", trajectory="handheld", trajectory_seed=7, scene_seed=7, duration_s=1.2)
+    sim = Simulator(spec)
+    traj = sim.trajectory
+    cfg = SlamConfig()
+    cfg.init.bundle_adjustment = bundle_adjustment
+    cams = StereoCameras.from_rig(sim.rig, max_width=424, max_height=240, size_multiple=1)
+    odo = StereoInertialOdometry(cams, ImuStream(sim.imu()), sim.rig.imu, cfg)
+    rng = np.random.default_rng(1)
+    R_wv = so3_exp(np.radians([20.0, -10.0, 5.0]))  # the vision frame V (first body pose) in the world
+    Rv = np.eye(4)
+    Rv[:3, :3] = R_wv.T
+    P = traj.position(np.linspace(0, 1.2, 20))
+    lms = rng.uniform(P.min(0) - 4, P.max(0) + 4, (2500, 3))
+    odo.lmap.add((lms + rng.normal(0, 0.02, lms.shape)) @ R_wv, np.zeros((len(lms), 8), np.float32), 0, 0)
+    t_kf = [int(round((0.1 + 0.12 * k) * 1e6)) for k in range(8)]
+    for k, t in enumerate(t_kf):
+        T = traj.pose_matrix(np.array([t * 1e-6]))[0]
+        parts = []
+        for c, cam in enumerate(cams.cams):
+            uv, vis = project_landmarks(lms, T, cam)
+            ids = np.flatnonzero(vis)[:100]
+            parts.append(Observations(ids, np.full(len(ids), c, np.int8), uv[ids] + rng.normal(0, 0.5, (len(ids), 2))))
+        T_v = Rv @ T
+        T_v[:3, 3] += rng.normal(0, 0.01, 3)
+        odo.preinit_window.append((k, t, T_v, Observations.concatenate(parts)))
+    odo.kf_id = 7
+    odo.t_first = t_kf[0] - 20_000  # the first frame's keyframe (not in the window) came before
+    tau = t_kf[-1]
+    v_v = {t: R_wv.T @ traj.position(np.array([t * 1e-6]), 1)[0] for t in t_kf[-3:]}
+    odo.state = NavEstimate(odo.preinit_window[-1][2].copy(), v_v[tau], gtsam.imuBias.ConstantBias())
+    R_wrong = so3_exp(np.radians([8.0, 0.0, 0.0])) @ R_wv
+    pos_before = odo.lmap.pos[:len(lms)].copy()
+    odo._start(tau, R_wrong, R_wrong @ v_v[tau], gtsam.imuBias.ConstantBias(), None, None, from_vision=True,
+               sigmas=(6.0, 0.1), velocities=v_v)
+    R_true = traj.rotation(np.array([tau * 1e-6]))[0]
+    tilt = _tilt_deg(odo.state.T_world_body[:3, :3], R_true)
+    if bundle_adjustment:
+        assert tilt < 1.0
+        assert odo.smoother.kf_ids == list(range(8))
+        assert not np.allclose(odo.lmap.pos[:len(lms)], pos_before @ R_wrong.T)
+    else:
+        assert tilt == pytest.approx(8.0, abs=0.5)
+        assert odo.smoother.kf_ids == [8]
+
+
 def test_keyframe_in_the_frame_of_a_restart_takes_its_place():
     """A tracking loss restarts the smoother at that frame; when the same frame re-initialises from
     stereo, its keyframe would be joined by a zero-length IMU factor, which gtsam cannot solve
@@ -409,8 +471,6 @@ def test_pipeline_on_tiny_preset(tiny_preset):
     g = r["ref_pose"][:, :3]
     spread = np.sqrt(np.mean(np.sum((g - g[0]) ** 2, axis=1)))
     assert r["ate_rmse_m"] <= spread + 0.02
-    from aerovis_slam.geometry import interpolate_poses
-
     T_est = pose7_to_matrix(res.pose7)
     T_gt = pose7_to_matrix(interpolate_poses(res.t_us, gt.t, gt.pose))
     rel_est = np.einsum("ji,njk->nik", T_est[0, :3, :3], T_est[:, :3, :3])
@@ -448,16 +508,24 @@ def test_pipeline_tracks_a_small_flight(small_flight):
     assert res.keyframes >= 5 and res.tracking_losses == 0
     # the final trajectory: same times; every output moved with its keyframe (the smoother refines
     # a keyframe after its frames were output), the vision-only ones before the initialisation
-    # rigidly with the initialisation's keyframe: one transform, the one the output at the
-    # initialisation moved by; all meet the same bound
+    # with the keyframes the initialisation's window re-estimated: rigidly per keyframe, so the
+    # transforms they move by form runs in time, more than one (the window moved its keyframes
+    # differently) and at most one per keyframe before the initialisation (plus the first
+    # frame's, which follows the window's oldest keyframe); all meet the same bound
     assert res.pose7_final is not None and res.pose7_final.shape == res.pose7.shape
     pre = res.t_us < res.info["t_initialized_us"]
-    at_init = int(np.flatnonzero(res.t_us == res.info["t_initialized_us"])[0])
     L, F = pose7_to_matrix(res.pose7), pose7_to_matrix(res.pose7_final)
-    C = F[at_init] @ np.linalg.inv(L[at_init])
-    assert pre.any() and not np.allclose(C, np.eye(4), atol=1e-4)
-    np.testing.assert_allclose(F[pre], C @ L[pre], atol=1e-6)
+    C = F[pre] @ np.linalg.inv(L[pre])
+    new_run = np.r_[True, [not np.allclose(a, b, atol=1e-6) for a, b in zip(C[1:], C[:-1])]]
+    runs = C[new_run]
+    assert 2 <= len(runs) <= res.keyframes
+    assert all(not np.allclose(a, b, atol=1e-6) for i, a in enumerate(runs) for b in runs[i + 1:])  # no run comes back
     assert not np.allclose(res.pose7_final[~pre], res.pose7[~pre])
+    # and their attitude: the live ones carry the alignment's gravity, the final ones the window's
+    G = pose7_to_matrix(interpolate_poses(res.t_us, gt.t, gt.pose))
+    tilt_live = [_tilt_deg(a[:3, :3], b[:3, :3]) for a, b in zip(L[pre], G[pre])]
+    tilt_final = [_tilt_deg(a[:3, :3], b[:3, :3]) for a, b in zip(F[pre], G[pre])]
+    assert max(tilt_final) < max(tilt_live)
     rf = ate(gt, PoseSamples(res.t_us, res.pose7_final), align="se3")
     assert rf["ate_rmse_m"] < 0.06 * rf["path_length_m"]
     for stage in ("mcts", "detector", "matching", "tracking", "backend", "total"):
@@ -544,8 +612,10 @@ def test_keyframes_before_initialisation_reach_the_loop_closer(small_flight):
     """A sequence that ends where it began can only close its loop against its first keyframes,
     which are made before gravity is known: they wait and reach the loop closer at the
     initialisation, in the world frame. Every keyframe of the frontend is in the loop closer's
-    database, and each pre-initialisation one at exactly the pose that was output at its time
-    (both are the vision-frame pose turned by the same gravity rotation)."""
+    database. The first frame's keyframe is at exactly the pose that was output at its time (both
+    are the vision-frame pose turned by the same gravity rotation); the later ones at the
+    initialisation window's re-estimate of it: moved, but by no more than the pre-initialisation
+    outputs' error (the 14 cm bound of the small-flight test, and the alignment's few degrees)."""
     from aerovis_slam.slam.loop import LoopCloser
 
     with LoopCloser() as closer:
@@ -556,9 +626,15 @@ def test_keyframes_before_initialisation_reach_the_loop_closer(small_flight):
     t_init = res.info["t_initialized_us"]
     pre = [k for k in kfs if k.t_us < t_init]
     assert pre and [k.t_us for k in kfs] == sorted(k.t_us for k in kfs)
-    for k in pre:
-        i = int(np.flatnonzero(res.t_us == k.t_us)[0])
-        np.testing.assert_allclose(k.T_odom, pose7_to_matrix(res.pose7[i]), atol=1e-9)
+    assert len(pre) >= 3
+    for j, k in enumerate(pre):
+        T_out = pose7_to_matrix(res.pose7[int(np.flatnonzero(res.t_us == k.t_us)[0])])
+        if j == 0:
+            np.testing.assert_allclose(k.T_odom, T_out, atol=1e-9)
+        else:
+            assert not np.allclose(k.T_odom, T_out, atol=1e-6)
+            assert np.linalg.norm(k.T_odom[:3, 3] - T_out[:3, 3]) < 0.14
+            assert rotation_angle_deg(k.T_odom[:3, :3].T @ T_out[:3, :3]) < 10.0
 
 
 def _with_gaps(src, dst, *, imu_gap_s=(0.8, 0.9), no_events_s=(1.0, 1.3)):

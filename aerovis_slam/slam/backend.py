@@ -171,13 +171,17 @@ class KeyframeSmoother:
     # ------------------------------------------------------------------------------------------
     def initialize(self, kf_id: int, t_s: float, state: NavEstimate, *, sigma_rollpitch_rad: float,
                    sigma_yaw_rad: float = 1e-3, sigma_pos_m: float = 1e-3, sigma_vel: float,
-                   sigma_acc_bias: float, sigma_gyro_bias: float) -> None:
+                   sigma_acc_bias: float, sigma_gyro_bias: float, obs: Observations | None = None,
+                   landmark_positions: dict[int, np.ndarray] | None = None) -> None:
         """Start the window at keyframe ``kf_id`` with priors on its state.
 
         The pose prior is tight on position and yaw (the unobservable gauge of visual-inertial
         odometry) and looser on roll and pitch (gravity makes them observable). gtsam's Pose3
         tangent is (rotation, translation) in the body frame; roll/pitch/yaw are taken as rotation
         about body axes here, which is exact for a level body and close for small tilts.
+        ``obs`` / ``landmark_positions``: the keyframe's own landmark observations, as for
+        :meth:`add_keyframe` (a window started from earlier keyframes, see the odometry's
+        initialisation, keeps what its first keyframe saw).
         """
         self.reset()
         graph = gtsam.NonlinearFactorGraph()
@@ -198,12 +202,49 @@ class KeyframeSmoother:
         values.insert(V(kf_id), np.asarray(state.v_world, np.float64))
         values.insert(B(kf_id), state.bias)
         stamps = {X(kf_id): 0.0, V(kf_id): 0.0, B(kf_id): 0.0}
+        if obs is not None and len(obs):
+            self._add_observations(graph, values, stamps, kf_id, 0, obs, landmark_positions or {})
         self.smoother.update(graph, values, stamps)
         self.kf_ids = [kf_id]
         self.kf_seq = {kf_id: 0}
         self._seq = 0
         self.estimates = {kf_id: NavEstimate(state.T_world_body.copy(), np.asarray(state.v_world, np.float64).copy(), state.bias)}
+        if obs is not None and len(obs):
+            # a stereo landmark seen by one keyframe is fixed by its two rays: no optimisation needed yet
+            est = self.smoother.calculateEstimate()
+            self.landmarks = {j: np.asarray(est.atPoint3(k)) for j, k in self.lm_key.items() if est.exists(k)}
         self.initialized = True
+
+    def _add_observations(self, graph, values, stamps: dict, kf_id: int, seq: int, obs: Observations,
+                          landmark_positions: dict[int, np.ndarray]) -> tuple[int, int]:
+        """Projection factors of keyframe ``kf_id``'s observations into ``graph`` (new landmark
+        variables into ``values``). Returns (observations dropped, landmarks added)."""
+        # Landmarks: reuse the window's variable, or add one when this keyframe constrains it alone
+        # (seen by both cameras: a stereo pair fixes a point); others only help tracking.
+        ids, counts = np.unique(obs.landmark, return_counts=True)
+        stereo_seen = set(ids[counts >= 2].tolist())
+        dropped = 0
+        new_keys = 0
+        for j, cam, xy, shape in zip(obs.landmark.tolist(), obs.cam.tolist(), obs.xy, obs.shape):
+            key = self.lm_key.get(j)
+            if key is None:
+                if j not in stereo_seen or j not in landmark_positions:
+                    dropped += 1
+                    continue
+                key = self._landmark_key(j)
+                p = np.asarray(landmark_positions[j], np.float64)
+                values.insert(key, p)
+                # A weak prior (metres) keeps the system determinate when an observation degenerates
+                # (a mismatch pulled behind a camera gives a projection factor without gradient);
+                # against pixel-accurate stereo it weighs nothing.
+                graph.add(gtsam.PriorFactorPoint3(key, p, self._lm_prior))
+                new_keys += 1
+            graph.add(gtsam.GenericProjectionFactorCal3_S2(np.asarray(xy, np.float64), _noise_for(self.cfg, shape, self._noise),
+                                                           X(kf_id), key, self._cal[cam], False, False, self._bPs[cam]))
+            stamps[key] = float(seq)
+            self.lm_time[j] = seq
+            self.lm_obs.setdefault(j, []).append(seq)
+        return dropped, new_keys
 
     def _landmark_key(self, lm_id: int) -> int:
         key = L(self._next_key)
@@ -238,31 +279,7 @@ class KeyframeSmoother:
         values.insert(B(kf_id), guess.bias)
         for k in (X(kf_id), V(kf_id), B(kf_id)):
             stamps[k] = float(seq)
-        # Landmarks: reuse the window's variable, or add one when this keyframe constrains it alone
-        # (seen by both cameras: a stereo pair fixes a point); others only help tracking.
-        ids, counts = np.unique(obs.landmark, return_counts=True)
-        stereo_seen = set(ids[counts >= 2].tolist())
-        dropped = 0
-        new_keys = 0
-        for j, cam, xy, shape in zip(obs.landmark.tolist(), obs.cam.tolist(), obs.xy, obs.shape):
-            key = self.lm_key.get(j)
-            if key is None:
-                if j not in stereo_seen or j not in landmark_positions:
-                    dropped += 1
-                    continue
-                key = self._landmark_key(j)
-                p = np.asarray(landmark_positions[j], np.float64)
-                values.insert(key, p)
-                # A weak prior (metres) keeps the system determinate when an observation degenerates
-                # (a mismatch pulled behind a camera gives a projection factor without gradient);
-                # against pixel-accurate stereo it weighs nothing.
-                graph.add(gtsam.PriorFactorPoint3(key, p, self._lm_prior))
-                new_keys += 1
-            graph.add(gtsam.GenericProjectionFactorCal3_S2(np.asarray(xy, np.float64), _noise_for(self.cfg, shape, self._noise),
-                                                           X(kf_id), key, self._cal[cam], False, False, self._bPs[cam]))
-            stamps[key] = float(seq)
-            self.lm_time[j] = seq
-            self.lm_obs.setdefault(j, []).append(seq)
+        dropped, new_keys = self._add_observations(graph, values, stamps, kf_id, seq, obs, landmark_positions)
         remove = self._observations_to_drop(seq)
         # Iteration budget: as many LM iterations as the measured cost allows (at least one).
         # (no budget: always max_iterations, so that a sync run does not depend on the machine's load)

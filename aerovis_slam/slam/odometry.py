@@ -17,8 +17,10 @@ OKVIS2 frontend + backend):
 
 Initialisation: vision-only stereo tracking (metric: stereo gives the scale) for ``init.window_s``,
 then the visual-inertial alignment (:func:`~aerovis_slam.slam.imu.align_visual_inertial`) gives
-gravity, velocities and the gyroscope bias; without enough tracked frames by ``init.timeout_s`` the
-accelerometer alone gives gravity (static start assumed, with a warning).
+gravity, velocities and the gyroscope bias, and the smoother starts with the keyframes tracked so far
+(their IMU factors and observations: a visual-inertial bundle adjustment, as in VINS-Mono, that
+re-estimates gravity, velocities and those poses together); without enough tracked frames by
+``init.timeout_s`` the accelerometer alone gives gravity (static start assumed, with a warning).
 
 Frames: the world W is gravity-aligned (z up) with its origin and yaw at the first body pose; the
 body B is the IMU frame; outputs are ``T_world_body``. Before initialisation, poses live in the
@@ -144,10 +146,12 @@ class StereoInertialOdometry:
         self.kf_odom: dict[int, np.ndarray] = {}       # keyframe id -> T_world_body (odometry) at insertion
         self.kf_loop_rows: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # window keyframe -> (keypoint rows, landmark ids) given to the loop closer
         self.preinit_kfs: list[tuple] = []              # keyframes before initialisation, for the loop closer (see _to_loop_closer)
+        self.preinit_window: list[tuple] = []           # the newest keyframes before initialisation: (id, t µs, T_vision_body, Observations)
         self.T_corr = np.eye(4)                         # loop-closure correction: world <- odometry world
         self.kf_smoothed: dict[int, np.ndarray] = {}    # keyframe id -> last smoother estimate T_world_body
         self.loop_corrections = 0
         self.rotate_outputs = None                      # set at initialisation: R_world_vision to apply to earlier outputs
+        self.init_anchor: tuple[int, np.ndarray] | None = None  # set with it: the window's oldest keyframe, its T_world_body then
         self._min_dt = 1.0 / cfg.max_rate_hz
         self._keypoint_noise = np.random.default_rng(cfg.detector.keypoint_noise_seed)
 
@@ -398,6 +402,11 @@ class StereoInertialOdometry:
         if self.initialized and self.smoother.kf_ids:
             anchor = self.smoother.kf_ids[-1]
             T_kf_body = invert_T(self.smoother.estimates[anchor].T_world_body) @ self.state.T_world_body
+        elif not self.initialized and self.preinit_window:
+            # vision-only: relative to the newest keyframe's tracked pose (a relative pose, the same
+            # in the vision and the world frame); the initialisation's bundle adjustment estimates it
+            anchor, _, T_kf, _ = self.preinit_window[-1]
+            T_kf_body = invert_T(T_kf) @ self.state.T_world_body
         return FrameResult(tau, self.T_corr @ self.state.T_world_body, tracked, is_kf, n_inl, timings, anchor, T_kf_body,
                            self.T_corr.copy())
 
@@ -530,10 +539,12 @@ class StereoInertialOdometry:
         all_obs = Observations.concatenate([obs, new_obs])
         if self.initialized:
             tb = time.perf_counter()
-            positions = {int(j): self.lmap.pos[j] for j in np.unique(all_obs.landmark)}
-            self._smoother_keyframe(kf, tau, state, all_obs, positions)
+            self._smoother_keyframe(kf, tau, state, all_obs, self._positions(all_obs))
             self.recovery_kfs = max(0, self.recovery_kfs - 1)
             timings["backend"] = (time.perf_counter() - tb) * 1e3
+        else:  # for the bundle adjustment at the initialisation (see _start)
+            self.preinit_window.append((kf, int(tau), state.T_world_body.copy(), all_obs))
+            del self.preinit_window[:-cfg.backend.window_keyframes]
         self.kf_t = tau
         self.kf_keypoints = kpL
         self.n_keyframes += 1
@@ -546,6 +557,10 @@ class StereoInertialOdometry:
         if self.loop_closer is not None:
             self._to_loop_closer(kf, tau, self.kf_state if self.initialized else state, kpL, obs, obs_kp, new_ids, rowsL)
         return True
+
+    def _positions(self, obs: Observations) -> dict[int, np.ndarray]:
+        """Map positions (world, m) of the landmarks in ``obs``, by landmark id."""
+        return {int(j): self.lmap.pos[j] for j in np.unique(obs.landmark)}
 
     def _smoother_keyframe(self, kf: int, tau: int, state: NavEstimate, obs: Observations, positions: dict,
                            *, update_landmarks: bool = True) -> NavEstimate:
@@ -674,7 +689,8 @@ class StereoInertialOdometry:
             v_w = R_wv @ aligned.velocities[-1]
             bias = gtsam.imuBias.ConstantBias(np.zeros(3), aligned.gyro_bias)
             self._start(tau, R_wv, v_w, bias, kpL, kpR, from_vision=True,
-                        sigmas=(aligned.tilt_sigma_deg, aligned.velocity_sigma))
+                        sigmas=(aligned.tilt_sigma_deg, aligned.velocity_sigma),
+                        velocities={int(ti): vi for ti, vi in zip(t, aligned.velocities)})
         elif (tau - self.t_first) * 1e-6 >= ic.timeout_s:
             acc = self.stream.mean_acc(self.t_first, self.t_first + 200_000)
             R_wv = gravity_rotation_from_acc(acc)
@@ -683,11 +699,15 @@ class StereoInertialOdometry:
                                          f"{ic.timeout_s} s; gravity from the accelerometer (assumes a static start)")
             self._start(tau, R_wv, v_w, gtsam.imuBias.ConstantBias(), kpL, kpR, from_vision=False)
 
-    def _start(self, tau, R_wv, v_w, bias, kpL, kpR, *, from_vision: bool, sigmas=(0.0, 0.0)) -> None:
+    def _start(self, tau, R_wv, v_w, bias, kpL, kpR, *, from_vision: bool, sigmas=(0.0, 0.0),
+               velocities: dict[int, np.ndarray] | None = None) -> None:
         """Rotate the vision frame into the gravity-aligned world and start the smoother at ``tau``.
 
         ``sigmas``: the alignment's own (tilt deg, velocity m/s) uncertainty; the smoother's priors
         are never tighter than it (a prior tighter than the estimate would pin its error).
+        ``velocities``: the alignment's velocity (vision frame, m/s) per aligned frame time (µs);
+        with ``init.bundle_adjustment`` the keyframes among those frames start the window (see
+        :meth:`_start_window`).
         """
         Rh = np.eye(4)
         Rh[:3, :3] = R_wv
@@ -697,11 +717,16 @@ class StereoInertialOdometry:
         self.state = NavEstimate(T, v_w, bias)
         self.rotate_outputs = Rh
         b = self.cfg.backend
-        self.kf_id += 1
         sig_rp = np.radians(max(b.prior_rollpitch_deg, sigmas[0]) if from_vision else 5.0)
-        self.smoother.initialize(self.kf_id, tau * 1e-6, self.state, sigma_rollpitch_rad=sig_rp,
-                                 sigma_vel=max(b.prior_velocity_m_s, sigmas[1]) if from_vision else 0.5,
-                                 sigma_acc_bias=b.prior_acc_bias, sigma_gyro_bias=b.prior_gyro_bias)
+        priors = dict(sigma_rollpitch_rad=sig_rp, sigma_vel=max(b.prior_velocity_m_s, sigmas[1]) if from_vision else 0.5,
+                      sigma_acc_bias=b.prior_acc_bias, sigma_gyro_bias=b.prior_gyro_bias)
+        started = False
+        if from_vision and velocities and self.cfg.init.bundle_adjustment:
+            started = self._start_window(tau, Rh, bias, velocities, priors)
+        if not started:
+            self.kf_id += 1
+            self.smoother.initialize(self.kf_id, tau * 1e-6, self.state, **priors)
+            self.init_anchor = (self.kf_id, self.state.T_world_body.copy())
         self.kf_state = self.state
         self._remember_window()
         self.pim = new_preintegration(self.params, bias)
@@ -714,5 +739,72 @@ class StereoInertialOdometry:
                 # their landmarks as triangulated then: refining them with the smoother's later
                 # estimates (as for the window's keyframes) was measured worse (four-run means of
                 # the drone flights' final ATE 0.93 / 1.12 % instead of 0.82 / 0.89 %)
-                self._add_loop_keyframe(kf, t_kf, Rh @ T_vb, kp, pts_body, valid)
+                est = self.smoother.estimates.get(kf)
+                self._add_loop_keyframe(kf, t_kf, Rh @ T_vb if est is None else est.T_world_body, kp, pts_body, valid)
         self.preinit_kfs = []
+        self.preinit_window = []
+
+    def _start_window(self, tau: int, Rh: np.ndarray, bias, velocities: dict[int, np.ndarray], priors: dict) -> bool:
+        """Start the smoother with the keyframes of the aligned stretch and the frame at ``tau``.
+
+        The alignment fits gravity and velocities to the vision-only poses, which it takes as exact;
+        on the bench preset its gravity was 1.7-17 deg off (1.7-3.5x its own sigma), and the
+        smoother, started from the newest frame alone, needed about a second of new keyframes to
+        see gravity again. The keyframes tracked before the initialisation (up to
+        ``backend.window_keyframes``, also those of alignment windows that were rejected as too
+        short) hold that second already: started with them (their IMU factors and landmark
+        observations; the priors on the oldest), the window re-estimates gravity, velocities, those
+        poses and their landmarks jointly at once, as VINS-Mono's visual-inertial bundle adjustment
+        after its alignment does (handheld_office, bench preset: the newest state's tilt error 15.6
+        -> 2.2 deg). The map takes the window's landmarks (not writing them back measured better on
+        spin_hdr_window, worse on the drone flights and handheld_office; four runs each).
+
+        Args:
+            Rh: (4, 4) world <- vision rotation. bias: the alignment's bias (gyroscope).
+            velocities: the alignment's velocity (vision frame) per frame time (µs).
+            priors: ``KeyframeSmoother.initialize``'s priors (for the oldest keyframe).
+        Returns:
+            False (nothing changed) when fewer than two keyframes qualify or gtsam fails.
+        """
+        R_wv = Rh[:3, :3]
+        n_max = self.cfg.backend.window_keyframes
+        # not the keyframe of the first frame: its time surfaces hold the first events only (the
+        # long channels are empty), and tracking against its landmarks jumped by 23 cm on a test
+        # flight; started with it, the window tilted gravity further (7 -> 14.5 deg), without it
+        # corrected it (7 -> 3.8 deg)
+        chain = [kf for kf in self.preinit_window if self.t_first < kf[1] <= tau]
+        if not chain or chain[-1][1] != tau:
+            # the frame at tau joins as a keyframe with its IMU factor alone (the outputs go on from it)
+            chain = chain[-(n_max - 1):] + [(self.kf_id + 1, int(tau), invert_T(Rh) @ self.state.T_world_body, Observations.empty())]
+        chain = chain[-n_max:]
+        if len(chain) < 2:
+            return False
+        # initial velocities: the alignment's where it has them; for keyframes before the aligned
+        # stretch (an alignment rejected on a short window keeps only its newer half) the slope of
+        # the keyframe positions, which the IMU factors then correct
+        t_kf = np.array([c[1] for c in chain], np.float64) * 1e-6
+        slope = np.gradient(np.stack([c[2][:3, 3] for c in chain]), t_kf, axis=0)
+        v_init = {c[1]: velocities.get(c[1], slope[i]) for i, c in enumerate(chain)}
+
+        def guess(T_vb, t):
+            return NavEstimate(Rh @ T_vb, R_wv @ v_init[t], bias)
+
+        try:
+            k0, t0, T0, obs0 = chain[0]
+            self.smoother.initialize(k0, t0 * 1e-6, guess(T0, t0), obs=obs0, landmark_positions=self._positions(obs0), **priors)
+            t_prev = t0
+            for k, t, T_vb, obs in chain[1:]:
+                pim = new_preintegration(self.params, bias)
+                self.stream.integrate(pim, t_prev, t)
+                self.smoother.add_keyframe(k, pim, guess(T_vb, t), obs, self._positions(obs))
+                t_prev = t
+        except RuntimeError as exc:
+            self.log.warn("init-window", f"t={tau} µs: the bundle adjustment of the initialisation's keyframes failed ({exc}); "
+                                         "the smoother starts from the newest frame alone")
+            return False
+        self.kf_id = max(self.kf_id, chain[-1][0])
+        self.init_anchor = (chain[0][0], Rh @ chain[0][2])
+        for j, p in self.smoother.landmark_estimates().items():
+            self.lmap.pos[j] = p
+        _, self.state = self.smoother.latest
+        return True

@@ -206,17 +206,18 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
     def record(res, tau: int, latency_us: float, pre_ms: float, mcts_ms: float, proc_ms: float):
         nonlocal shown
         if odo.rotate_outputs is not None:  # gravity became known: earlier outputs into the world frame
-            # ... and anchored to the keyframe of the initialisation: the alignment's gravity is off
-            # by degrees (1.7-17 deg on the bench preset's starts, up to 3.5x its own sigma), which
-            # the smoother corrects within a second; the final trajectory then carries that
-            # correction back over the vision-only stretch, as it does for later outputs
-            # (an output's pose in that keyframe: its pose relative to this output, then this
-            # output's own T_kf_body)
-            to_kf = None if res.anchor_kf < 0 or res.T_kf_body is None else res.T_kf_body @ invert_T(res.T_world_body)
+            # ... and anchored to a keyframe the smoother estimates: their own keyframe where the
+            # initialisation's window took it in, else the oldest keyframe of that window (the
+            # keyframe of the initialisation when it started alone). The alignment's gravity is off
+            # by degrees (1.7-17 deg on the bench preset's starts, up to 3.5x its own sigma); the
+            # final trajectory carries the smoother's correction back over the vision-only stretch,
+            # as it does for later outputs
+            k0, T_k0 = odo.init_anchor
+            to_k0 = invert_T(T_k0)
             for i in range(len(T_out)):
                 T_out[i] = odo.rotate_outputs @ T_out[i]
-                if to_kf is not None and anchors[i][0] < 0:
-                    anchors[i] = (res.anchor_kf, to_kf @ T_out[i], res.T_corr)
+                if anchors[i][0] not in odo.kf_smoothed:
+                    anchors[i] = (k0, to_k0 @ T_out[i], res.T_corr)
             odo.rotate_outputs = None
         t_out.append(int(tau))
         T_out.append(res.T_world_body)

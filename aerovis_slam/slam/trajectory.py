@@ -412,8 +412,8 @@ def final_trajectory(T_live: np.ndarray, anchor_kf: np.ndarray, T_kf_body: np.nd
     Args:
         T_live: (N, 4, 4) live ``T_world_body`` outputs (loop correction of their time applied).
         anchor_kf: (N,) keyframe id each output was tracked against; -1: none, the output is kept
-            as it is (the pipeline anchors the vision-only outputs before the initialisation to the
-            initialisation's keyframe).
+            as it is (the pipeline anchors the vision-only outputs before the initialisation to
+            their keyframes in the initialisation's window, or to its oldest keyframe).
         T_kf_body: (N, 4, 4) each output's pose in its keyframe's body frame, at output time.
         T_corr_live: (N, 4, 4) the loop correction (world <- odometry world) applied at output time.
         kf_poses: keyframe id -> its last smoother estimate ``T_world_body`` (odometry world).
