@@ -706,8 +706,8 @@ class StereoInertialOdometry:
         ``sigmas``: the alignment's own (tilt deg, velocity m/s) uncertainty; the smoother's priors
         are never tighter than it (a prior tighter than the estimate would pin its error).
         ``velocities``: the alignment's velocity (vision frame, m/s) per aligned frame time (µs);
-        with ``init.bundle_adjustment`` the keyframes among those frames start the window (see
-        :meth:`_start_window`).
+        with ``init.bundle_adjustment`` the keyframes tracked before the initialisation start the
+        window (see :meth:`_start_window`).
         """
         Rh = np.eye(4)
         Rh[:3, :3] = R_wv
@@ -745,7 +745,7 @@ class StereoInertialOdometry:
         self.preinit_window = []
 
     def _start_window(self, tau: int, Rh: np.ndarray, bias, velocities: dict[int, np.ndarray], priors: dict) -> bool:
-        """Start the smoother with the keyframes of the aligned stretch and the frame at ``tau``.
+        """Start the smoother with the keyframes tracked before the initialisation and the frame at ``tau``.
 
         The alignment fits gravity and velocities to the vision-only poses, which it takes as exact;
         on the bench preset its gravity was 1.7-17 deg off (1.7-3.5x its own sigma), and the
