@@ -460,7 +460,9 @@ def test_pipeline_on_tiny_preset(tiny_preset):
     has an ATE equal to the wobble's RMS spread about its start; IMU-only propagation may not do
     worse than that plus 2 cm (accelerometer noise 2e-3 m/s^2/sqrt(Hz) integrates to millimetres)."""
     path = tiny_preset / "tiny_spin_hdr.h5"
-    res = run_slam(path, StereoClassicalDetector("sift", 200), load_config("accurate"), mode="sync", progress=False)
+    cfg = load_config("accurate")
+    cfg.detector.observation_lag_events_per_px = 0.0  # outputs on the processing grid (the lag's own tests below)
+    res = run_slam(path, StereoClassicalDetector("sift", 200), cfg, mode="sync", progress=False)
     assert res.status == "ok" and res.complete
     assert abs(len(res.t_us) - res.sequence_duration_s * 50) <= 2
     assert np.all(np.diff(res.t_us) == 20_000)
@@ -683,8 +685,12 @@ def test_pipeline_survives_imu_gap_and_missing_events(small_flight, tmp_path):
 
 
 def test_async_mode_processes_newest_state(small_flight):
-    """async: frames follow the simulated clock (spacing >= the 100 Hz cap), latency >= processing."""
-    res = run_slam(small_flight, StereoClassicalDetector("orb", 200), load_config("realtime"), mode="async", progress=False)
+    """async: frames follow the simulated clock (spacing >= the 100 Hz cap), latency >= processing.
+    (Without the observation lag, which moves each output to when its keypoints show the scene:
+    test_observation_lag_in_async_mode_keeps_outputs_ordered.)"""
+    cfg = load_config("realtime")
+    cfg.detector.observation_lag_events_per_px = 0.0
+    res = run_slam(small_flight, StereoClassicalDetector("orb", 200), cfg, mode="async", progress=False)
     assert res.status == "ok" and res.complete and res.mode == "async"
     assert np.all(np.diff(res.t_us) >= 10_000)
     assert np.all(res.latency_ms >= np.asarray(res.stage_ms["total"]) - 1e-6)
