@@ -299,8 +299,8 @@ def _tilt_deg(R_est: np.ndarray, R_true: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(R_est[2] @ R_true[2], -1.0, 1.0))))
 
 
-@pytest.mark.parametrize("bundle_adjustment", [True, False])
-def test_initialisation_bundle_adjustment_corrects_the_alignments_gravity(bundle_adjustment):
+@pytest.mark.parametrize("bundle_adjustment,start", [(True, "alignment"), (True, "static"), (False, "alignment")])
+def test_initialisation_bundle_adjustment_corrects_the_alignments_gravity(bundle_adjustment, start):
     """The visual-inertial alignment hands over gravity 8 deg off (as on the bench preset's starts:
     1.7-17 deg). Eight keyframes of vision-only tracking over 0.84 s of a handheld path (vision
     frame = the world turned by 25 deg; poses 1 cm off, landmarks 2 cm off, 0.5 px observations; the
@@ -309,7 +309,9 @@ def test_initialisation_bundle_adjustment_corrects_the_alignments_gravity(bundle
     tilt comes within 1 deg of the truth (measured 0.3-0.7 deg over four noise seeds: the prior on
     the oldest keyframe, no tighter than the alignment's 6 deg sigma, still pulls), the keyframes
     are the window and the landmarks move with the estimate. Without it the window is the newest
-    frame alone, which keeps the 8 deg."""
+    frame alone, which keeps the 8 deg. The static-start fallback (gravity from the accelerometer's
+    mean, no alignment velocities: all from the keyframe positions' slope, a 10 deg tilt prior) is
+    corrected the same way."""
     spec = SequenceSpec("ba", rig="davis240_stereo", trajectory="handheld", trajectory_seed=7, scene_seed=7, duration_s=1.2)
     sim = Simulator(spec)
     traj = sim.trajectory
@@ -342,8 +344,11 @@ def test_initialisation_bundle_adjustment_corrects_the_alignments_gravity(bundle
     odo.state = NavEstimate(odo.preinit_window[-1][2].copy(), v_v[tau], gtsam.imuBias.ConstantBias())
     R_wrong = so3_exp(np.radians([8.0, 0.0, 0.0])) @ R_wv
     pos_before = odo.lmap.pos[:len(lms)].copy()
-    odo._start(tau, R_wrong, R_wrong @ v_v[tau], gtsam.imuBias.ConstantBias(), None, None, from_vision=True,
-               sigmas=(6.0, 0.1), velocities=v_v)
+    if start == "alignment":
+        odo._start(tau, R_wrong, R_wrong @ v_v[tau], gtsam.imuBias.ConstantBias(), None, None, from_vision=True,
+                   sigmas=(6.0, 0.1), velocities=v_v)
+    else:
+        odo._start(tau, R_wrong, R_wrong @ v_v[tau], gtsam.imuBias.ConstantBias(), None, None, from_vision=False)
     R_true = traj.rotation(np.array([tau * 1e-6]))[0]
     tilt = _tilt_deg(odo.state.T_world_body[:3, :3], R_true)
     if bundle_adjustment:
