@@ -209,11 +209,13 @@ class KeyframeSmoother:
         self.kf_seq = {kf_id: 0}
         self._seq = 0
         self.estimates = {kf_id: NavEstimate(state.T_world_body.copy(), np.asarray(state.v_world, np.float64).copy(), state.bias)}
-        if obs is not None and len(obs):
-            # a stereo landmark seen by one keyframe is fixed by its two rays: no optimisation needed yet
-            est = self.smoother.calculateEstimate()
-            self.landmarks = {j: np.asarray(est.atPoint3(k)) for j, k in self.lm_key.items() if est.exists(k)}
+        if self.lm_key:  # the keyframe's own landmarks, as the update estimated them
+            self.landmarks = self._landmarks_from(self.smoother.calculateEstimate())
         self.initialized = True
+
+    def _landmarks_from(self, est: gtsam.Values) -> dict[int, np.ndarray]:
+        """World positions (m) of the window's landmarks in ``est``, by landmark id."""
+        return {j: np.asarray(est.atPoint3(k)) for j, k in self.lm_key.items() if est.exists(k)}
 
     def _add_observations(self, graph, values, stamps: dict, kf_id: int, seq: int, obs: Observations,
                           landmark_positions: dict[int, np.ndarray]) -> tuple[int, int]:
@@ -310,7 +312,7 @@ class KeyframeSmoother:
         self.estimates = {k: NavEstimate(est.atPose3(X(k)).matrix(), np.asarray(est.atVector(V(k))).copy(),
                                          est.atConstantBias(B(k))) for k in self.kf_ids}
         # read out once per update: the map copy and the loop closer's refresh both need them
-        self.landmarks = {j: np.asarray(est.atPoint3(k)) for j, k in self.lm_key.items() if est.exists(k)}
+        self.landmarks = self._landmarks_from(est)
         return SmootherUpdate(iterations=iters, time_ms=dt_ms, error=float(result.getError()), landmarks=len(self.lm_key),
                               new_landmarks=new_keys, dropped_observations=dropped, removed_observations=len(remove))
 

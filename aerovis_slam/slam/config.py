@@ -233,11 +233,12 @@ class InitConfig:
             landmarks: with 12 required, handheld_office (bench preset) propagated its first 14 frames
             with a zero velocity, and the alignment started from them (SuperLitE sync 3.92 % -> 2.45 %
             with 6).
-        bundle_adjustment: start the smoother with the keyframes of the aligned stretch (up to
-            ``backend.window_keyframes``: their IMU factors and observations, VINS-Mono's
-            visual-inertial bundle adjustment after the alignment) instead of the newest frame
-            alone, so that gravity, velocity and the vision-only poses are re-estimated jointly at
-            once rather than over the following second.
+        bundle_adjustment: start the smoother with the keyframes tracked before the
+            initialisation (up to ``backend.window_keyframes``, not the first frame's: their IMU
+            factors and observations, VINS-Mono's visual-inertial bundle adjustment after the
+            alignment; also after the static-start fallback) instead of the newest frame alone, so
+            that gravity, velocity and the vision-only poses are re-estimated jointly at once rather
+            than over the following second.
     """
 
     window_s: float = 0.3

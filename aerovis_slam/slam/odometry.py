@@ -705,9 +705,9 @@ class StereoInertialOdometry:
 
         ``sigmas``: the alignment's own (tilt deg, velocity m/s) uncertainty; the smoother's priors
         are never tighter than it (a prior tighter than the estimate would pin its error).
-        ``velocities``: the alignment's velocity (vision frame, m/s) per aligned frame time (µs);
-        with ``init.bundle_adjustment`` the keyframes tracked before the initialisation start the
-        window (see :meth:`_start_window`).
+        ``velocities``: the alignment's velocity (vision frame, m/s) per aligned frame time (µs),
+        None after the static-start fallback; with ``init.bundle_adjustment`` the keyframes tracked
+        before the initialisation start the window either way (see :meth:`_start_window`).
         """
         Rh = np.eye(4)
         Rh[:3, :3] = R_wv
@@ -763,8 +763,10 @@ class StereoInertialOdometry:
         spin_hdr_window, worse on the drone flights and handheld_office; four runs each).
 
         Args:
-            Rh: (4, 4) world <- vision rotation. bias: the alignment's bias (gyroscope).
-            velocities: the alignment's velocity (vision frame) per frame time (µs).
+            Rh: (4, 4) world <- vision rotation. bias: the alignment's bias (gyroscope; zero after
+                the static-start fallback).
+            velocities: the alignment's velocity (vision frame) per frame time (µs); empty after the
+                static-start fallback (then every keyframe's velocity is the positions' slope).
             priors: ``KeyframeSmoother.initialize``'s priors (for the oldest keyframe).
         Returns:
             False (nothing changed) when fewer than two keyframes qualify or gtsam fails.
