@@ -186,7 +186,9 @@ class BackendConfig:
             (from the measured time per iteration); None: always ``max_iterations`` (deterministic).
         tracking_iterations: LM iterations of the per-frame (motion-only) optimisation.
         tracking_max_observations: observations it uses (spread over the image; all are checked).
-        pixel_sigma: reprojection noise (px, 1 sigma).
+        pixel_sigma: reprojection noise (px, 1 sigma). 1.5: event keypoints re-detected on time
+            surfaces scatter by about a pixel around the true projection, with offsets that persist
+            along a landmark's track, which i.i.d. 1 px does not cover (docs/slam.md, "Pixel noise").
         robust: ``huber`` or ``cauchy`` loss on reprojection errors; ``robust_k`` its threshold in sigmas.
         prior_rollpitch_deg, prior_velocity_m_s: initial-state uncertainty after initialisation.
         prior_acc_bias, prior_gyro_bias: initial bias uncertainty (m/s^2, rad/s).
@@ -198,7 +200,7 @@ class BackendConfig:
     time_budget_ms: float | None = 60.0
     tracking_iterations: int = 4
     tracking_max_observations: int = 120
-    pixel_sigma: float = 1.0
+    pixel_sigma: float = 1.5
     robust: str = "huber"
     robust_k: float = 1.345
     prior_rollpitch_deg: float = 2.0
