@@ -17,7 +17,6 @@ import json
 import os
 import sys
 import time
-from datetime import timedelta
 from pathlib import Path
 
 import lightning as L
@@ -42,6 +41,53 @@ class _EpochSetter(Callback):
 
     def on_train_epoch_start(self, trainer, pl_module):
         self.dataset.set_epoch(trainer.current_epoch)
+
+
+class LastCheckpoint(Callback):
+    """Keeps ``path`` (``last.ckpt``, what a resumed run continues from) current: written after every
+    validation, every ``every_min`` minutes of training in between, and when training ends.
+
+    Written by hand because Lightning's ``save_last=True`` does not do this: on the callback that
+    keeps the best checkpoint it refreshes ``last.ckpt`` only when the best improves, and a second,
+    time-triggered callback with ``save_last`` writes ``last-v1.ckpt`` beside it, since the name is
+    taken (a 4.5-minute GPU run of this trainer left ``last.ckpt`` at step 400 of 2472, its best).
+    The file goes through the trainer's checkpoint IO (:class:`AtomicCheckpointIO`: never half-written).
+    """
+
+    def __init__(self, path: str | os.PathLike, every_min: float):
+        self.path = Path(path)
+        self.interval_s = float(every_min) * 60.0
+        self._t_saved = time.monotonic()
+        self._step_saved = -1
+
+    def on_train_start(self, trainer, pl_module):
+        self._t_saved = time.monotonic()
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        due = time.monotonic() - self._t_saved >= self.interval_s
+        # all ranks must agree (saving is collective under DDP), as Lightning's own time trigger does
+        if trainer.strategy.broadcast(due):
+            self._save(trainer)
+
+    def on_validation_end(self, trainer, pl_module):
+        if not trainer.sanity_checking:
+            self._save(trainer)  # also at a step saved by time: the checkpoint then holds this validation
+
+    def on_train_end(self, trainer, pl_module):
+        if trainer.global_step != self._step_saved:
+            self._save(trainer)
+
+    def _save(self, trainer) -> None:
+        trainer.save_checkpoint(self.path)
+        self._t_saved = time.monotonic()
+        self._step_saved = trainer.global_step
+
+
+def checkpoint_callbacks(ckpt_dir: str | os.PathLike, every_min: float) -> tuple[ModelCheckpoint, LastCheckpoint]:
+    """(``best.ckpt`` by validation AUC@10, ``last.ckpt`` kept current by :class:`LastCheckpoint`)."""
+    ckpt_dir = Path(ckpt_dir)
+    best = ModelCheckpoint(dirpath=ckpt_dir, filename="best", monitor="val/auc10", mode="max", save_top_k=1, save_last=False)
+    return best, LastCheckpoint(ckpt_dir / "last.ckpt", every_min)
 
 
 def sequences_from_config(data_cfg) -> tuple[list[Path], list[Path]]:
@@ -218,15 +264,13 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
     print(f"data: {len(train_paths)} training sequences, {workers} loader worker{'s' if workers != 1 else ''}"
           + (f", decoded copies in {dataset.event_cache}" if dataset.event_cache else ""))
     val_loader = torch.utils.data.DataLoader([str(p) for p in val_paths], batch_size=None)
-    best_cb = ModelCheckpoint(dirpath=ckpt_dir, filename="best", monitor="val/auc10", mode="max", save_top_k=1, save_last=True)
-    periodic_cb = ModelCheckpoint(dirpath=ckpt_dir, filename="periodic", save_top_k=0, save_last=True,
-                                  train_time_interval=timedelta(minutes=float(cfg.checkpoint_every_min)))
+    best_cb, last_cb = checkpoint_callbacks(ckpt_dir, float(cfg.checkpoint_every_min))
     loggers = [CSVLogger(run_dir, name="logs", version=""), TensorBoardLogger(run_dir, name="tensorboard", version="")]
     trainer = L.Trainer(
         **OmegaConf.to_container(cfg.trainer, resolve=True),
         default_root_dir=run_dir,
         logger=loggers,
-        callbacks=[best_cb, periodic_cb, _EpochSetter(dataset), TQDMProgressBar(refresh_rate=1)],
+        callbacks=[best_cb, last_cb, _EpochSetter(dataset), TQDMProgressBar(refresh_rate=1)],
         plugins=[AtomicCheckpointIO()],
         num_sanity_val_steps=0,
         deterministic=False,

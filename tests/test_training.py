@@ -145,6 +145,57 @@ def test_resume_continues_from_last_checkpoint(tmp_path, sim_cache):
     assert json.loads((run / "summary.json").read_text())["steps"] == 4  # 2 restored + 2 new, not 4 new
 
 
+def _fit_with_checkpoints(tmp_path, every_min: float, crash_at_step: int | None = None):
+    """A small Lightning model (4 steps an epoch, 3 epochs) whose validation score falls every
+    epoch, so the first epoch (step 4) stays the best, trained with train.py's checkpoint callbacks.
+    ``crash_at_step``: the training step that raises (an interrupted run)."""
+    import lightning as L
+    from lightning.pytorch.demos.boring_classes import BoringModel
+
+    from aerovis_train.checkpoints import AtomicCheckpointIO
+    from aerovis_train.training import checkpoint_callbacks
+
+    class Worsening(BoringModel):
+        def training_step(self, batch, batch_idx):
+            if self.global_step == crash_at_step:
+                raise RuntimeError("interrupted")
+            return super().training_step(batch, batch_idx)
+
+        def on_validation_epoch_end(self):
+            self.log("val/auc10", 50.0 - self.current_epoch)
+
+    best, last = checkpoint_callbacks(tmp_path, every_min)
+    trainer = L.Trainer(max_epochs=3, limit_train_batches=4, limit_val_batches=1, callbacks=[best, last],
+                        plugins=[AtomicCheckpointIO()], logger=False, enable_progress_bar=False,
+                        enable_model_summary=False, num_sanity_val_steps=0, accelerator="cpu")
+    trainer.fit(Worsening())
+
+
+def _step(path) -> int:
+    import torch
+
+    return int(torch.load(path, map_location="cpu", weights_only=False)["global_step"])
+
+
+def test_last_checkpoint_is_the_newest_state_not_the_best(tmp_path):
+    """last.ckpt (what a resumed run continues from) is written after every validation, also when it
+    brings no new best: after three epochs of four steps it holds step 12 while best.ckpt holds
+    step 4 (Lightning's save_last on the best callback left last.ckpt at the best, and a timed
+    second callback wrote last-v1.ckpt)."""
+    _fit_with_checkpoints(tmp_path, every_min=60.0)
+    assert sorted(p.name for p in tmp_path.glob("*.ckpt")) == ["best.ckpt", "last.ckpt"]
+    assert (_step(tmp_path / "best.ckpt"), _step(tmp_path / "last.ckpt")) == (4, 12)
+
+
+@pytest.mark.parametrize("every_min,expected", [(60.0, 4), (0.0, 6)])
+def test_interrupted_run_keeps_the_newest_last_checkpoint(tmp_path, every_min, expected):
+    """A run that fails at step 6 (mid second epoch) leaves last.ckpt at the first epoch's validation
+    (step 4) when the timer is not due, and at step 6 when it is due after every step."""
+    with pytest.raises(RuntimeError, match="interrupted"):
+        _fit_with_checkpoints(tmp_path, every_min, crash_at_step=6)
+    assert _step(tmp_path / "last.ckpt") == expected
+
+
 def test_validation_pools_both_cameras_and_warns_when_few_pairs(tmp_path, sim_cache):
     """The default validation scores cam0 and cam1 of each held-out sequence: with val.max_pairs=3
     (per sequence and camera) the one tiny validation sequence gives 3 pairs from one camera and 6
