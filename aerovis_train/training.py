@@ -284,6 +284,10 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
     trainer.fit(module, loader, val_loader, ckpt_path=str(resume) if resume else None)
 
     best_auc = float(best_cb.best_model_score) if best_cb.best_model_score is not None else float("nan")
+    if not trainer.is_global_zero:
+        # under DDP the other processes stop here: model.pt, metrics.json and summary.json are written
+        # once (a second writer without the metrics could replace summary.json after the first)
+        return best_auc
     best_path = best_cb.best_model_path or str(last)
     slim = None
     if best_path and Path(best_path).exists():
@@ -291,14 +295,12 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
         slim = save_slim(module.cfg["model"], lightning_model_state(ckpt), run_dir / "model.pt",
                          meta={"val_auc10": best_auc, "seed": int(cfg.seed), "data": OmegaConf.to_container(cfg.data, resolve=True),
                                "global_step": int(ckpt.get("global_step", 0))})
-    metrics_path = None
-    if trainer.is_global_zero:  # one metrics.json per job, also under DDP
-        selected = best_path if best_path and Path(best_path).exists() else None
-        extra = {"best_val_auc10": best_auc, "checkpoint": selected, "weights": str(slim) if slim else None, "steps": int(trainer.global_step),
-                 "train_wall_s": round(time.time() - t_start, 1), "seed": int(cfg.seed), "run_dir": str(run_dir),
-                 "crop": list(dataset.crop) if dataset.crop else None}
-        metrics_path = _write_metrics(cfg, module, selected, val_loader, (val_paths or train_paths)[0],
-                                      overrides if overrides is not None else job_overrides(), run_dir, extra)
+    selected = best_path if best_path and Path(best_path).exists() else None
+    extra = {"best_val_auc10": best_auc, "checkpoint": selected, "weights": str(slim) if slim else None, "steps": int(trainer.global_step),
+             "train_wall_s": round(time.time() - t_start, 1), "seed": int(cfg.seed), "run_dir": str(run_dir),
+             "crop": list(dataset.crop) if dataset.crop else None}
+    metrics_path = _write_metrics(cfg, module, selected, val_loader, (val_paths or train_paths)[0],
+                                  overrides if overrides is not None else job_overrides(), run_dir, extra)
     summary = {
         "model": cfg.model.name,
         "best_val_auc10": best_auc,

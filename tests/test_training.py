@@ -196,6 +196,25 @@ def test_interrupted_run_keeps_the_newest_last_checkpoint(tmp_path, every_min, e
     assert _step(tmp_path / "last.ckpt") == expected
 
 
+def test_ddp_trains_with_two_processes(tmp_path, sim_cache):
+    """trainer=ddp (as on GPUs) with two CPU processes (gloo; SyncBatchNorm needs GPUs): the job
+    finishes, last.ckpt holds the final step (its timer is broadcast, so both processes save
+    together), and only the first process writes the outputs and prints the summary, so
+    summary.json names the metrics.json that process wrote."""
+    import torch
+
+    run = tmp_path / "run"
+    res = _train(run, "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2", "trainer.precision=32",
+                 "trainer.sync_batchnorm=false", "checkpoint_every_min=0", "data.crop=[40,56]", "+trainer.max_steps=3",
+                 cache=sim_cache)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert res.stdout.count("best val AUC@10") == 1
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["steps"] == 3 and summary["metrics"] == str(run / "metrics.json")
+    assert json.loads((run / "metrics.json").read_text())["val_pairs"] > 0
+    assert torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)["global_step"] == 3
+
+
 def test_validation_pools_both_cameras_and_warns_when_few_pairs(tmp_path, sim_cache):
     """The default validation scores cam0 and cam1 of each held-out sequence: with val.max_pairs=3
     (per sequence and camera) the one tiny validation sequence gives 3 pairs from one camera and 6
