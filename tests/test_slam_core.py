@@ -539,6 +539,78 @@ def test_pipeline_tracks_a_small_flight(small_flight):
         assert len(res.stage_ms[stage]) == len(res.t_us)
 
 
+def _flight_cams(path):
+    with Sequence(path) as seq:
+        calib = seq.calib
+    return StereoCameras.from_rig(calib, max_width=424, max_height=240, size_multiple=8)
+
+
+def test_oracle_projects_the_scene_point_of_a_keypoint(small_flight):
+    """The perfect-tracks oracle (oracle.py): a pixel back-projected with the rendered depth projects
+    back onto itself at the same time (the same ray: exact to float precision), and 0.2 s later
+    into the right camera where that camera's own rendered depth agrees with the point's depth. The
+    depth map is sampled at the nearest pixel, so agreement is required to within the depth change
+    across one pixel, and only where no depth edge is there (at one the nearest pixel may see the
+    occluding surface: a change of more than 10 % across one pixel)."""
+    from aerovis_slam.slam.oracle import ObservationOracle
+
+    cams = _flight_cams(small_flight)
+    oracle = ObservationOracle(small_flight, cams, 0.0)
+    u, v = np.meshgrid(np.arange(8, cams.left.width - 8, 16), np.arange(8, cams.left.height - 8, 16))
+    xy = np.c_[u.ravel(), v.ravel()].astype(np.float64) + 0.3
+    pts = oracle.back_project(500_000, 0, xy)
+    assert np.isfinite(pts).all()  # the room has no open side
+    np.testing.assert_allclose(oracle.projections(500_000, 0, pts), xy, atol=1e-6)
+    uv = oracle.projections(700_000, 1, pts)
+    seen = np.isfinite(uv).all(axis=1)
+    assert seen.mean() > 0.5
+    T_cw = np.linalg.inv(oracle.T_world_body(700_000) @ cams.right.T_body_cam)
+    z_point = (pts[seen] @ T_cw[:3, :3].T + T_cw[:3, 3])[:, 2]
+    depth = oracle._depth(700_000, 1)
+    c, r = np.round(uv[seen, 0]).astype(int), np.round(uv[seen, 1]).astype(int)
+    pad = np.pad(depth, 1, mode="edge")
+    window = np.stack([pad[r + 1 + dr, c + 1 + dc] for dr in (-1, 0, 1) for dc in (-1, 0, 1)])
+    step = np.abs(window - depth[r, c]).max(axis=0)  # depth change across one pixel
+    smooth = step < 0.1 * depth[r, c]  # slanted surfaces change a few % per pixel, depth edges far more
+    assert smooth.sum() > 0.5 * len(smooth)
+    assert np.all(np.abs(z_point - depth[r, c])[smooth] <= step[smooth] + 1e-4)
+
+
+def test_oracle_refuses_a_sequence_without_a_simulator_spec(small_flight, tmp_path):
+    import shutil
+
+    import h5py
+
+    from aerovis_slam.slam.oracle import ObservationOracle
+
+    copy = tmp_path / "recording.h5"
+    shutil.copy(small_flight, copy)
+    with h5py.File(copy, "r+") as f:
+        f.attrs["meta"] = "{}"
+    with pytest.raises(DataError, match="meta.spec") as err:
+        ObservationOracle(copy, _flight_cams(copy), 0.5)
+    assert str(copy) in str(err.value)
+
+
+def test_pipeline_with_exact_tracks_recovers_the_trajectory(small_flight):
+    """With every observation replaced by the exact projection of its landmark's scene point
+    (oracle noise 0), what is left is the IMU noise and the solver: the estimate must stay well
+    inside the footprint of one pixel at the scene depth (~2.7 m / fx), the error one pixel of
+    keypoint offset would cause; the bound is half of it. With ORB's own keypoints the same run
+    is about 5 % of the path off (the bound of the test above is 6 %)."""
+    cfg = load_config("accurate")
+    cfg.detector.oracle_noise_px = 0.0
+    res = run_slam(small_flight, StereoClassicalDetector("orb", 300), cfg, mode="sync", progress=False)
+    assert res.status == "ok" and res.complete
+    stats = res.info["oracle"]
+    assert stats["noise_px"] == 0.0 and stats["observations_replaced"] > 1000 and stats["landmarks"] > 100
+    with Sequence(small_flight) as s:
+        gt = s.gt
+    fx = _flight_cams(small_flight).left.K[0, 0]
+    r = ate(gt, PoseSamples(res.t_us, res.pose7), align="se3")
+    assert r["ate_rmse_m"] < 0.5 * 2.7 / fx
+
+
 def test_calibrated_camera_clock_offset_is_undone(small_flight, tmp_path, camera_clock_copy):
     """Cameras 30 ms late on the IMU's clock (t_imu = t_cam - 30 ms, Kalibr's timeshift_cam_imu):
     with the offset in the calibration the runtime moves the events back onto the IMU clock and

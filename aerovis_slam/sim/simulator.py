@@ -108,6 +108,25 @@ class SequenceSpec:
         d["user_textures"] = [str(x) for x in self.user_textures]
         return d
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "SequenceSpec":
+        """The inverse of :meth:`to_dict` (the ``spec`` a simulated sequence's metadata carries).
+
+        Raises:
+            ValueError: a field this class does not have, or a missing ``name``.
+        """
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise ValueError(f"unknown SequenceSpec field(s) {unknown}")
+        if "name" not in d:
+            raise ValueError("SequenceSpec needs a 'name'")
+        d = dict(d)
+        if isinstance(d.get("events"), dict):
+            d["events"] = EventConfig(**d["events"])
+        d["lights_off"] = [tuple(x) for x in d.get("lights_off", [])]
+        return cls(**d)
+
 
 @dataclass
 class SimResult:

@@ -127,6 +127,8 @@ def run_sequence(sequence: str | os.PathLike, detector, config, out_dir: str | o
              # the sensitivity probe (DetectorConfig): recorded so that a perturbed run is never mistaken for a plain one
              "keypoint_noise_px": float(getattr(det_cfg, "keypoint_noise_px", 0.0)),
              "keypoint_noise_seed": int(getattr(det_cfg, "keypoint_noise_seed", 0)),
+             # the perfect-tracks diagnostic (oracle.py): None for a run of the detector's own keypoints
+             "oracle_noise_px": getattr(det_cfg, "oracle_noise_px", None),
              "keyframes": getattr(result, "keyframes", None), "pipeline_info": getattr(result, "info", None)}
     if closer is not None:
         result.warnings.extend(w for w in closer.warnings if w not in result.warnings)
@@ -193,7 +195,8 @@ def bench_row(sequence: str, mode: str, detector: str, metrics: dict | None, sta
 def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str | os.PathLike, *,
               modes: tuple[str, ...] = ("sync", "async"), config: str | None = None, loop: bool = True, resume: bool = False,
               progress: bool = True, diverge_pct: float = 25.0, diverge_min_m: float = 0.10, log=None,
-              stop_event: threading.Event | None = None, repeats: int = 1, keypoint_noise_px: float = 0.2) -> list[dict]:
+              stop_event: threading.Event | None = None, repeats: int = 1, keypoint_noise_px: float = 0.2,
+              oracle_noise_px: float | None = None) -> list[dict]:
     """Run every sequence x detector x mode; write ``bench.json`` and ``table.md`` in ``out_dir``.
 
     Args:
@@ -205,6 +208,9 @@ def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str 
         stop_event: when set, the current run stops early (recorded as ``partial``) and no further run starts.
         repeats: runs per sequence x detector x mode: the first as configured, repeat ``i`` >= 1 with
             keypoint noise of +-``keypoint_noise_px`` px seeded with ``i``.
+        oracle_noise_px: the perfect-tracks diagnostic in every run
+            (:attr:`~aerovis_slam.slam.config.DetectorConfig.oracle_noise_px`); the detector's name in
+            folders and rows gets ``+oracle<X>px``.
 
     Returns:
         The ``bench.json`` rows. Each run's outputs are in ``out_dir/<sequence>/<detector>-<mode>/``
@@ -224,7 +230,7 @@ def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str 
     rows: list[dict] = []
     bar = tqdm(jobs, desc="aerovis-slam bench", unit="run", disable=not progress)
     for seq, det, mode, rep in bar:
-        name = getattr(det, "name", str(det))
+        name = getattr(det, "name", str(det)) + ("" if oracle_noise_px is None else f"+oracle{oracle_noise_px:g}px")
         bar.set_postfix_str(f"{seq.stem} {name} {mode}" + (f" repeat {rep}" if repeats > 1 else ""))
         run_dir = out / seq.stem / (f"{name}-{mode}" + (f"-r{rep}" if rep else ""))
         metrics = None
@@ -238,6 +244,8 @@ def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str 
                 if rep:
                     cfg.detector.keypoint_noise_px, cfg.detector.keypoint_noise_seed = float(keypoint_noise_px), rep
                 noise = cfg.detector.keypoint_noise_px
+                if oracle_noise_px is not None:
+                    cfg.detector.oracle_noise_px = float(oracle_noise_px)
                 metrics = run_sequence(seq, det, cfg, run_dir, mode=mode, loop=loop, progress=False, stop_event=stop_event)
             except KeyboardInterrupt:
                 raise

@@ -58,6 +58,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--config", default=None, help="realtime | accurate | a YAML file (default: accurate for sync, realtime otherwise)")
     p.add_argument("--mode", choices=("sync", "async", "live"), default=None, help="processing mode (default: the config's)")
     p.add_argument("--no-loop", action="store_true", help="disable loop closure")
+    p.add_argument("--oracle-noise-px", type=float, default=None, metavar="PX",
+                   help="diagnostic on aerovis-sim sequences: landmark observations replaced by true projections "
+                        "+ Gaussian noise of PX px (perfect tracks; docs/slam.md)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -85,6 +88,8 @@ def _parser() -> argparse.ArgumentParser:
                         "mean (min-max) (default 1)")
     p.add_argument("--keypoint-noise-px", type=float, default=0.2,
                    help="uniform keypoint noise of the repeats, +- this many px (default 0.2)")
+    p.add_argument("--oracle-noise-px", type=float, default=None, metavar="PX",
+                   help="every run with perfect tracks + Gaussian noise of PX px (aerovis-sim sequences; see run)")
     p.add_argument("--diverge-pct", type=float, default=25.0, help="diverged: ATE above this %% of the path length ...")
     p.add_argument("--diverge-min-m", type=float, default=0.10, help="... and above this many metres")
     p.add_argument("--out", required=True, help="output folder")
@@ -165,6 +170,8 @@ def cmd_run(args) -> int:
     if not seq.is_file():
         raise DataError(seq, "no such file (expected a canonical sequence .h5)")
     config = _config(args.config, args.mode)
+    if args.oracle_noise_px is not None:
+        config.detector.oracle_noise_px = float(args.oracle_noise_px)
     mode = args.mode or config.mode
     detector = make_detector(args.model, args.detector, top_k=getattr(getattr(config, "detector", None), "top_k", None))
     with _stop_on_sigint("the trajectory will be written as partial") as stop:
@@ -178,6 +185,8 @@ def cmd_run(args) -> int:
     summary["trajectory_file"] = metrics.get("trajectory_file")
     summary["ate_pct_final"] = (metrics.get("final") or {}).get("ate_pct")
     summary["final_trajectory_file"] = metrics.get("final_trajectory_file")
+    if (metrics.get("pipeline_info") or {}).get("oracle"):
+        summary["oracle"] = metrics["pipeline_info"]["oracle"]
     print(json.dumps(summary))
     if stop.is_set():
         return 130
@@ -233,7 +242,7 @@ def cmd_bench(args) -> int:
         rows = run_bench(seqs, dets, args.out, modes=tuple(args.modes), config=args.config, loop=not args.no_loop,
                          resume=args.resume, progress=not args.quiet, diverge_pct=args.diverge_pct,
                          diverge_min_m=args.diverge_min_m, log=None if args.quiet else tqdm.write, stop_event=stop,
-                         repeats=args.repeats, keypoint_noise_px=args.keypoint_noise_px)
+                         repeats=args.repeats, keypoint_noise_px=args.keypoint_noise_px, oracle_noise_px=args.oracle_noise_px)
     summary = {"out": str(Path(args.out)), "runs": len(rows), "ok": sum(r["status"] == "ok" for r in rows),
                "by_detector_mode": summarize(rows)}
     if not args.quiet:

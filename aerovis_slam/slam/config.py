@@ -72,7 +72,11 @@ class DetectorConfig:
             ``keypoint_noise_seed``. A sync run is deterministic but chaotic (a fraction of a pixel
             decides which frames become keyframes and when initialisation is accepted), so one run
             is one draw; ``aerovis-slam bench --repeats`` uses this to measure the spread.
-        keypoint_noise_seed: seed of that noise.
+        keypoint_noise_seed: seed of that noise (and of ``oracle_noise_px``'s).
+        oracle_noise_px: a diagnostic, None for every real use: on a sequence written by
+            ``aerovis-sim``, every landmark observation is replaced by the true projection of one
+            scene point per landmark plus Gaussian noise of this many px per axis
+            (:mod:`~aerovis_slam.slam.oracle`: what a detector with perfect tracks would give).
         observation_lag_events_per_px: the keypoints of the time surfaces at ``tau`` are taken to
             show the scene at the time of the N-th newest event before ``tau`` (N = this x the
             buffer's pixels; the mean over both cameras, at most :data:`~aerovis_slam.slam.preprocessing.MAX_OBSERVATION_LAG_US`
@@ -91,6 +95,7 @@ class DetectorConfig:
     classical: str = "orb"
     keypoint_noise_px: float = 0.0
     keypoint_noise_seed: int = 0
+    oracle_noise_px: float | None = None
     observation_lag_events_per_px: float = 0.03
 
 

@@ -51,7 +51,7 @@ from .config import SlamConfig
 from .frontend import KeyframeSelector, LandmarkMap, edge_shapes, match_to_map, spread_subset, structure_tensor
 from .imu import ImuStream, align_visual_inertial, gravity_rotation_from_acc, new_preintegration, preintegration_params
 from .ransac import bearings, pnp_ransac, position_given_rotation, relative_pose_ransac, reprojection_error, rotation_ransac
-from .stereo import match_stereo
+from .stereo import match_stereo, triangulate
 
 
 def perturb_keypoints(kp: Keypoints, rng: np.random.Generator, noise_px: float, width: int, height: int) -> Keypoints:
@@ -114,8 +114,9 @@ class StereoInertialOdometry:
     """
 
     def __init__(self, cams: StereoCameras, stream: ImuStream, noise: ImuNoise | None, cfg: SlamConfig, *,
-                 loop_closer=None, log: WarningLog | None = None):
+                 loop_closer=None, log: WarningLog | None = None, oracle=None):
         self.cams = cams
+        self.oracle = oracle  # ObservationOracle (diagnostic): true observation positions (see oracle.py)
         self.stream = stream
         self.cfg = cfg
         self.params = preintegration_params(noise)
@@ -303,6 +304,9 @@ class StereoInertialOdometry:
                            np.concatenate([kpL.xy[mL.keypoint[inlL]], kpR.xy[mR.keypoint[inlR]]]).astype(np.float64),
                            np.concatenate([shL, shR]))
         obs_kp = np.concatenate([mL.keypoint[inlL], mR.keypoint[inlR]])
+        if self.oracle is not None:
+            obs, keep = self.oracle.replace(tau, obs)
+            obs_kp = obs_kp[keep]
         visual = n_inl >= cfg.ransac.min_inliers
         tracked = False
         if self.frame == 0:
@@ -536,6 +540,9 @@ class StereoInertialOdometry:
                                np.concatenate([kpL.xy[rowsL], xyR]).astype(np.float64),
                                np.concatenate([edge_shapes(tensors[0], kpL.xy[rowsL], max_ratio=ratio),
                                                edge_shapes(tensors[1], xyR, max_ratio=ratio)]))
+        if self.oracle is not None and len(new_obs):
+            new_obs, _ = self.oracle.replace(tau, new_obs)
+            self._triangulate_oracle_pairs(new_obs, T_wc0)
         all_obs = Observations.concatenate([obs, new_obs])
         if self.initialized:
             tb = time.perf_counter()
@@ -557,6 +564,18 @@ class StereoInertialOdometry:
         if self.loop_closer is not None:
             self._to_loop_closer(kf, tau, self.kf_state if self.initialized else state, kpL, obs, obs_kp, new_ids, rowsL)
         return True
+
+    def _triangulate_oracle_pairs(self, new_obs: Observations, T_wc0: np.ndarray) -> None:
+        """New landmarks placed where the oracle's stereo pair puts them (world, m), as the detector's
+        own pair placed them before the replacement; one without a kept pair keeps that position."""
+        xy = [{int(j): p for j, p in zip(new_obs.landmark[new_obs.cam == c], new_obs.xy[new_obs.cam == c])} for c in (0, 1)]
+        ids = np.array([j for j in xy[0] if j in xy[1]], np.int64)
+        if not len(ids):
+            return
+        xyL, xyR = np.stack([xy[0][j] for j in ids]), np.stack([xy[1][j] for j in ids])
+        pts_c0, valid = triangulate(xyL, xyR, self.cams.left.K, self.cams.right.K, self.cams.T_right_left,
+                                    max_reproj_px=np.inf)
+        self.lmap.pos[ids[valid]] = transform_points(T_wc0, pts_c0[valid])
 
     def _positions(self, obs: Observations) -> dict[int, np.ndarray]:
         """Map positions (world, m) of the landmarks in ``obs``, by landmark id."""

@@ -179,7 +179,12 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
                               "do not overlap by more than one frame")
     # OpenCV's RANSAC draws from its global generator: seed it so that a run is reproducible
     cv2.setRNGSeed(0)
-    odo = StereoInertialOdometry(cams, stream, calib.imu, config, loop_closer=loop_closer, log=log)
+    oracle = None
+    if config.detector.oracle_noise_px is not None:  # diagnostic: perfect tracks (oracle.py)
+        from .oracle import ObservationOracle
+
+        oracle = ObservationOracle(path, cams, float(config.detector.oracle_noise_px), seed=config.detector.keypoint_noise_seed)
+    odo = StereoInertialOdometry(cams, stream, calib.imu, config, loop_closer=loop_closer, log=log, oracle=oracle)
     # the setting's detection threshold for learned detectors (restored after the run)
     old_threshold = getattr(detector, "threshold", None)
     if config.detector.threshold is not None and old_threshold is not None:
@@ -348,6 +353,8 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
                                if obs_lag and config.detector.observation_lag_events_per_px > 0 else None),
         "camera_timeshift_us": shifts,
     }
+    if oracle is not None:
+        info["oracle"] = oracle.stats.as_dict(oracle.noise_px)
     if failure_trace:
         info["traceback"] = failure_trace
     return SlamResult(

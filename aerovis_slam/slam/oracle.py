@@ -1,0 +1,182 @@
+"""Perfect keypoint tracks from the simulator's ground truth: how accurate the runtime would be with a
+detector whose every track follows one scene point, with pixel noise of a chosen size.
+
+A diagnostic for detector research (``aerovis-slam run --oracle-noise-px X``): it separates what the
+keypoints cost from what the estimator, the IMU and the matching structure cost. A sequence written
+by ``aerovis-sim`` carries the spec it was generated from (``meta.spec``), so the exact scene and
+trajectory can be rebuilt and rendered at any time. A landmark's scene point is fixed when the oracle
+first sees the landmark: its first observation (the left one where both cameras see it) is
+back-projected with the rendered z-depth at that time and the true camera pose. From then on every
+observation of that landmark is the point's exact projection at the true pose, plus Gaussian noise of
+``noise_px`` per axis, with an isotropic noise shape (the edge-shaped covariance of
+:func:`~aerovis_slam.slam.frontend.edge_shapes` models a detector error the oracle does not have).
+
+What stays the frontend's: which keypoints exist, which match which landmark (RANSAC runs on the
+detector's own positions), which frames become keyframes, and loop closure (it verifies with the
+detector's keypoints). Observations whose first sighting hits no surface (a keypoint on the sky), or
+whose point projects behind the camera or outside the image later, are dropped and counted.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DataError
+from ..geometry import invert_T, project, transform_points
+from .backend import Observations
+from .cameras import StereoCameras
+
+
+def simulator_of(sequence: str | os.PathLike):
+    """The :class:`~aerovis_slam.sim.simulator.Simulator` that wrote ``sequence`` (rebuilt from its metadata).
+
+    Raises:
+        DataError: the file carries no simulator spec (a recording: there is no scene to render), or
+            was written by another simulator version (its scene would not be the one rebuilt here).
+    """
+    from ..io.sequence import Sequence
+    from ..sim.simulator import SIM_VERSION, SequenceSpec, Simulator
+
+    path = Path(sequence)
+    with Sequence(path) as seq:
+        meta = dict(seq.meta)
+    if meta.get("generator") != "aerovis-sim" or not isinstance(meta.get("spec"), dict):
+        raise DataError(path, "field meta.spec missing: perfect keypoint tracks need a sequence written by aerovis-sim "
+                              "(its scene is re-rendered for the true depth); recordings have none")
+    if meta.get("sim_version") != SIM_VERSION:
+        raise DataError(path, f"field meta.sim_version is {meta.get('sim_version')!r}, this simulator is version {SIM_VERSION}: "
+                              "its scene would differ from the one that made the events")
+    try:
+        spec = SequenceSpec.from_dict(meta["spec"])
+    except (TypeError, ValueError) as exc:
+        raise DataError(path, f"field meta.spec is not a simulator spec ({exc})") from None
+    return Simulator(spec)
+
+
+@dataclass
+class OracleStats:
+    """Counts over a run: ``replaced`` observations, ``dropped`` ones (see the module docstring),
+    ``landmarks`` given a scene point, ``no_surface`` landmarks whose first sighting hit none."""
+
+    replaced: int = 0
+    dropped: int = 0
+    landmarks: int = 0
+    no_surface: int = 0
+
+    def as_dict(self, noise_px: float) -> dict:
+        return {"noise_px": float(noise_px), "observations_replaced": self.replaced, "observations_dropped": self.dropped,
+                "landmarks": self.landmarks, "landmarks_without_surface": self.no_surface}
+
+
+class ObservationOracle:
+    """Replaces landmark observations by true projections plus noise (see the module docstring).
+
+    Args:
+        sequence: the simulated ``.h5`` the run reads.
+        cams: the runtime's cameras (pixels at the MCTS resolution; the depth is rendered at the
+            sensor's and looked up along each keypoint's ray).
+        noise_px: standard deviation of the Gaussian noise per axis (px at the MCTS resolution).
+        seed: seed of that noise.
+        simulator: the rebuilt simulator (default: :func:`simulator_of`).
+    """
+
+    def __init__(self, sequence: str | os.PathLike, cams: StereoCameras, noise_px: float, *, seed: int = 0, simulator=None):
+        if not noise_px >= 0:
+            raise DataError(None, f"oracle noise must be >= 0 px, got {noise_px}")
+        self.sim = simulator if simulator is not None else simulator_of(sequence)
+        self.cams = cams
+        self.noise_px = float(noise_px)
+        self.rng = np.random.default_rng(seed)
+        missing = [c.name for c in cams.cams if c.name not in self.sim.rig.cameras]
+        if missing:
+            raise DataError(Path(sequence), f"camera(s) {missing} are not in the simulator's rig {sorted(self.sim.rig.cameras)}")
+        self.points: dict[int, np.ndarray | None] = {}  # landmark id -> true world point (m), None: no surface
+        self.stats = OracleStats()
+        self._pose_cache: tuple[int, np.ndarray] | None = None
+        self._depth_cache: dict[tuple[int, int], np.ndarray] = {}
+
+    # -- the truth at one time -------------------------------------------------------------------
+    def T_world_body(self, t_us: int) -> np.ndarray:
+        """(4, 4) true body pose at ``t_us`` (µs), from the simulator's continuous trajectory."""
+        if self._pose_cache is None or self._pose_cache[0] != t_us:
+            R, p, _, _ = self.sim.trajectory.kinematics(t_us * 1e-6)
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = R, p
+            self._pose_cache = (t_us, T)
+        return self._pose_cache[1]
+
+    def _depth(self, t_us: int, cam: int) -> np.ndarray:
+        """(H, W) true z-depth (m, inf: no surface) of camera ``cam`` at its sensor resolution."""
+        key = (t_us, cam)
+        if key not in self._depth_cache:
+            model = self.cams.cams[cam]
+            T_wc = self.T_world_body(t_us) @ model.T_body_cam
+            self._depth_cache = {k: v for k, v in self._depth_cache.items() if k[0] == t_us}  # one time at a time
+            self._depth_cache[key] = self.sim.scene.render(self.sim.rig.cameras[model.name], T_wc, t_us * 1e-6)[1]
+        return self._depth_cache[key]
+
+    def back_project(self, t_us: int, cam: int, xy: np.ndarray) -> np.ndarray:
+        """True world points (N, 3) under pixels ``xy`` (N, 2) of camera ``cam`` at ``t_us``; NaN rows where
+        the ray hits no surface or leaves the sensor."""
+        model = self.cams.cams[cam]
+        sensor = self.sim.rig.cameras[model.name]
+        xy = np.asarray(xy, np.float64).reshape(-1, 2)
+        rays = np.c_[xy, np.ones(len(xy))] @ np.linalg.inv(model.K).T  # z = 1 in the camera frame
+        uv, _ = project(rays, np.asarray(sensor.K, np.float64))
+        u, v = np.round(uv[:, 0]).astype(np.int64), np.round(uv[:, 1]).astype(np.int64)
+        depth = self._depth(t_us, cam)
+        inside = (u >= 0) & (u < depth.shape[1]) & (v >= 0) & (v < depth.shape[0])
+        z = np.full(len(xy), np.nan)
+        z[inside] = depth[v[inside], u[inside]]
+        z[~np.isfinite(z)] = np.nan
+        T_wc = self.T_world_body(t_us) @ model.T_body_cam
+        return transform_points(T_wc, rays * z[:, None])
+
+    def projections(self, t_us: int, cam: int, points_world: np.ndarray) -> np.ndarray:
+        """Exact pixels (N, 2) of world points in camera ``cam`` at ``t_us``; NaN behind the camera or
+        outside the image."""
+        model = self.cams.cams[cam]
+        T_cw = invert_T(self.T_world_body(t_us) @ model.T_body_cam)
+        uv, _ = project(transform_points(T_cw, np.asarray(points_world, np.float64).reshape(-1, 3)), model.K)
+        outside = ~((uv[:, 0] >= -0.5) & (uv[:, 0] <= model.width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= model.height - 0.5))
+        uv[outside] = np.nan
+        return uv
+
+    # -- the replacement ---------------------------------------------------------------------
+    def replace(self, t_us: int, obs: Observations) -> tuple[Observations, np.ndarray]:
+        """``obs`` (taken at ``t_us``, µs) with true positions plus noise; returns (kept observations,
+        keep mask (M,) over ``obs``)."""
+        n = len(obs)
+        if n == 0:
+            return obs, np.zeros(0, bool)
+        # scene points of landmarks new to the oracle: from their first observation here, left first
+        order = np.lexsort((obs.cam, obs.landmark))
+        first = order[np.r_[True, obs.landmark[order][1:] != obs.landmark[order][:-1]]]
+        new = [i for i in first if int(obs.landmark[i]) not in self.points]
+        for cam in (0, 1):
+            rows = [i for i in new if obs.cam[i] == cam]
+            if rows:
+                pts = self.back_project(t_us, cam, obs.xy[rows])
+                for i, p in zip(rows, pts):
+                    ok = bool(np.isfinite(p).all())
+                    self.points[int(obs.landmark[i])] = p if ok else None
+                    self.stats.landmarks += ok
+                    self.stats.no_surface += not ok
+        xy = np.full((n, 2), np.nan)
+        for cam in (0, 1):
+            rows = np.flatnonzero(obs.cam == cam)
+            have = [i for i in rows if self.points.get(int(obs.landmark[i])) is not None]
+            if have:
+                xy[have] = self.projections(t_us, cam, np.stack([self.points[int(obs.landmark[i])] for i in have]))
+        keep = np.isfinite(xy).all(axis=1)
+        if self.noise_px > 0 and keep.any():
+            xy[keep] += self.rng.normal(0.0, self.noise_px, (int(keep.sum()), 2))
+        self.stats.replaced += int(keep.sum())
+        self.stats.dropped += int(n - keep.sum())
+        out = Observations(obs.landmark[keep], obs.cam[keep], xy[keep],
+                           np.broadcast_to(np.eye(2), (int(keep.sum()), 2, 2)).copy())
+        return out, keep
