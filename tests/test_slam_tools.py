@@ -721,6 +721,9 @@ def test_cli_run_with_the_oracle_records_it(tmp_path, capsys):
     m = json.loads((out / "metrics.json").read_text())
     assert m["oracle_noise_px"] == 0.5 and line["oracle"] == m["pipeline_info"]["oracle"]
     assert line["oracle"]["noise_px"] == 0.5
+    bad = tmp_path / "bad"  # refused before any output exists
+    assert main(["run", str(seq), "--detector", "orb", "--oracle-noise-px", "-1", "--out", str(bad), "--quiet"]) == 2
+    assert not bad.exists() and "oracle noise must be >= 0 px" in capsys.readouterr().err
 
 
 def test_ctrl_c_stops_cleanly_then_aborts(capsys):

@@ -113,6 +113,11 @@ def run_sequence(sequence: str | os.PathLike, detector, config, out_dir: str | o
         The metrics dict (as written to ``metrics.json``), with ``out_dir`` and ``trajectory_file``.
     """
     sequence = Path(sequence)
+    oracle_px = getattr(getattr(config, "detector", None), "oracle_noise_px", None)
+    if oracle_px is not None:  # refuse a recording or a bad noise before any output folder exists
+        from .oracle import oracle_spec
+
+        oracle_spec(sequence, float(oracle_px))
     out = prepare_out_dir(out_dir)
     gt = _load_gt(sequence)  # fails early (DataError) on a missing or foreign file
     mode = mode or getattr(config, "mode", "sync")

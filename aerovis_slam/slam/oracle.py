@@ -31,16 +31,19 @@ from .backend import Observations
 from .cameras import StereoCameras
 
 
-def simulator_of(sequence: str | os.PathLike):
-    """The :class:`~aerovis_slam.sim.simulator.Simulator` that wrote ``sequence`` (rebuilt from its metadata).
+def oracle_spec(sequence: str | os.PathLike, noise_px: float = 0.0):
+    """The :class:`~aerovis_slam.sim.simulator.SequenceSpec` that wrote ``sequence``, checked for the oracle.
 
     Raises:
-        DataError: the file carries no simulator spec (a recording: there is no scene to render), or
-            was written by another simulator version (its scene would not be the one rebuilt here).
+        DataError: ``noise_px`` below 0, a file without a simulator spec (a recording: there is no
+            scene to render), or one written by another simulator version (its scene would not be
+            the one rebuilt here).
     """
     from ..io.sequence import Sequence
-    from ..sim.simulator import SIM_VERSION, SequenceSpec, Simulator
+    from ..sim.simulator import SIM_VERSION, SequenceSpec
 
+    if not noise_px >= 0:
+        raise DataError(None, f"oracle noise must be >= 0 px, got {noise_px}")
     path = Path(sequence)
     with Sequence(path) as seq:
         meta = dict(seq.meta)
@@ -51,10 +54,17 @@ def simulator_of(sequence: str | os.PathLike):
         raise DataError(path, f"field meta.sim_version is {meta.get('sim_version')!r}, this simulator is version {SIM_VERSION}: "
                               "its scene would differ from the one that made the events")
     try:
-        spec = SequenceSpec.from_dict(meta["spec"])
+        return SequenceSpec.from_dict(meta["spec"])
     except (TypeError, ValueError) as exc:
         raise DataError(path, f"field meta.spec is not a simulator spec ({exc})") from None
-    return Simulator(spec)
+
+
+def simulator_of(sequence: str | os.PathLike):
+    """The :class:`~aerovis_slam.sim.simulator.Simulator` that wrote ``sequence``, rebuilt from its
+    metadata (errors: :func:`oracle_spec`)."""
+    from ..sim.simulator import Simulator
+
+    return Simulator(oracle_spec(sequence))
 
 
 @dataclass
