@@ -609,6 +609,32 @@ def test_bench_table_and_json(tmp_path, monkeypatch, empty_config):
     assert bench_mod.classify({"status": "ok", "complete": True, "ate_rmse_m": 0.5, "path_length_m": 1.0}) == "diverged"
 
 
+def test_bench_runs_each_oracle_noise_as_a_variant(tmp_path, monkeypatch, empty_config):
+    """``bench --oracle-noise-px 0 0.5``: every detector runs at each noise (the runner sees it in its
+    config), as ``<detector>+oracle<X>px`` in folders, rows and one table; metrics.json records it."""
+    import aerovis_slam.slam.oracle as oracle_mod
+
+    seq = _tiny_sequence(tmp_path / "tiny_a.h5")
+    monkeypatch.setattr(oracle_mod, "oracle_spec", lambda sequence, noise_px=0.0: None)  # not a simulated file
+    seen = []
+
+    def runner(sequence, detector, config, **kw):
+        seen.append((detector.name, config.detector.oracle_noise_px))
+        return _fake_runner()(sequence, detector, config, **kw)
+
+    monkeypatch.setattr(bench_mod, "_run_slam", runner)
+    dets = [types.SimpleNamespace(name="learned"), types.SimpleNamespace(name="classical-orb")]
+    rows = bench_mod.run_bench([seq], dets, tmp_path / "b", modes=("sync",), config=str(empty_config), loop=False,
+                               progress=False, oracle_noise_px=[0.0, 0.5])
+    assert seen == [("learned", 0.0), ("learned", 0.5), ("classical-orb", 0.0), ("classical-orb", 0.5)]
+    names = ["learned+oracle0px", "learned+oracle0.5px", "classical-orb+oracle0px", "classical-orb+oracle0.5px"]
+    assert [r["detector"] for r in rows] == names
+    m = json.loads((tmp_path / "b" / "tiny_a" / "learned+oracle0.5px-sync" / "metrics.json").read_text())
+    assert m["oracle_noise_px"] == 0.5
+    header = (tmp_path / "b" / "table.md").read_text().split("| Sequence | path [m] |")[1].splitlines()[0]
+    assert all(f"{n} sync" in header for n in names)
+
+
 def test_bench_repeats_perturb_and_aggregate(tmp_path, monkeypatch, empty_config, capsys):
     """Repeat i >= 1 runs with keypoint noise seeded i (seen in the config the runner gets); the
     spread table and ``best_on_mean`` aggregate exactly the runs' ATE."""

@@ -201,7 +201,7 @@ def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str 
               modes: tuple[str, ...] = ("sync", "async"), config: str | None = None, loop: bool = True, resume: bool = False,
               progress: bool = True, diverge_pct: float = 25.0, diverge_min_m: float = 0.10, log=None,
               stop_event: threading.Event | None = None, repeats: int = 1, keypoint_noise_px: float = 0.2,
-              oracle_noise_px: float | None = None) -> list[dict]:
+              oracle_noise_px: float | list[float] | None = None) -> list[dict]:
     """Run every sequence x detector x mode; write ``bench.json`` and ``table.md`` in ``out_dir``.
 
     Args:
@@ -213,9 +213,9 @@ def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str 
         stop_event: when set, the current run stops early (recorded as ``partial``) and no further run starts.
         repeats: runs per sequence x detector x mode: the first as configured, repeat ``i`` >= 1 with
             keypoint noise of +-``keypoint_noise_px`` px seeded with ``i``.
-        oracle_noise_px: the perfect-tracks diagnostic in every run
-            (:attr:`~aerovis_slam.slam.config.DetectorConfig.oracle_noise_px`); the detector's name in
-            folders and rows gets ``+oracle<X>px``.
+        oracle_noise_px: the perfect-tracks diagnostic (:attr:`~aerovis_slam.slam.config.DetectorConfig.oracle_noise_px`):
+            one value or several, each a variant of every detector, named ``<detector>+oracle<X>px``
+            in folders, rows and the table (one table compares the noise levels).
 
     Returns:
         The ``bench.json`` rows. Each run's outputs are in ``out_dir/<sequence>/<detector>-<mode>/``
@@ -231,11 +231,12 @@ def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str 
         raise ValueError(f"repeats > 1 need keypoint_noise_px > 0 (sync runs would repeat exactly), got {keypoint_noise_px}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    jobs = [(Path(s), d, m, i) for s in sequences for m in modes for d in detectors for i in range(repeats)]
+    oracles = [None] if oracle_noise_px is None else [float(x) for x in np.atleast_1d(oracle_noise_px)]
+    jobs = [(Path(s), d, m, o, i) for s in sequences for m in modes for d in detectors for o in oracles for i in range(repeats)]
     rows: list[dict] = []
     bar = tqdm(jobs, desc="aerovis-slam bench", unit="run", disable=not progress)
-    for seq, det, mode, rep in bar:
-        name = getattr(det, "name", str(det)) + ("" if oracle_noise_px is None else f"+oracle{oracle_noise_px:g}px")
+    for seq, det, mode, oracle_px, rep in bar:
+        name = getattr(det, "name", str(det)) + ("" if oracle_px is None else f"+oracle{oracle_px:g}px")
         bar.set_postfix_str(f"{seq.stem} {name} {mode}" + (f" repeat {rep}" if repeats > 1 else ""))
         run_dir = out / seq.stem / (f"{name}-{mode}" + (f"-r{rep}" if rep else ""))
         metrics = None
@@ -249,8 +250,8 @@ def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str 
                 if rep:
                     cfg.detector.keypoint_noise_px, cfg.detector.keypoint_noise_seed = float(keypoint_noise_px), rep
                 noise = cfg.detector.keypoint_noise_px
-                if oracle_noise_px is not None:
-                    cfg.detector.oracle_noise_px = float(oracle_noise_px)
+                if oracle_px is not None:
+                    cfg.detector.oracle_noise_px = oracle_px
                 metrics = run_sequence(seq, det, cfg, run_dir, mode=mode, loop=loop, progress=False, stop_event=stop_event)
             except KeyboardInterrupt:
                 raise

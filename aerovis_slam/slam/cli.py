@@ -88,8 +88,9 @@ def _parser() -> argparse.ArgumentParser:
                         "mean (min-max) (default 1)")
     p.add_argument("--keypoint-noise-px", type=float, default=0.2,
                    help="uniform keypoint noise of the repeats, +- this many px (default 0.2)")
-    p.add_argument("--oracle-noise-px", type=float, default=None, metavar="PX",
-                   help="every run with perfect tracks + Gaussian noise of PX px (aerovis-sim sequences; see run)")
+    p.add_argument("--oracle-noise-px", type=float, nargs="+", default=None, metavar="PX",
+                   help="perfect tracks + Gaussian noise of PX px (aerovis-sim sequences; see run); several values "
+                        "run each detector at each, side by side in one table")
     p.add_argument("--diverge-pct", type=float, default=25.0, help="diverged: ATE above this %% of the path length ...")
     p.add_argument("--diverge-min-m", type=float, default=0.10, help="... and above this many metres")
     p.add_argument("--out", required=True, help="output folder")
