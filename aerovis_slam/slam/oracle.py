@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
-from ..geometry import invert_T, project, transform_points
+from ..geometry import invert_T, project, transform_points, unproject
 from .backend import Observations
 from .cameras import StereoCameras
 
@@ -42,8 +42,7 @@ def oracle_spec(sequence: str | os.PathLike, noise_px: float = 0.0):
     from ..io.sequence import Sequence
     from ..sim.simulator import SIM_VERSION, SequenceSpec
 
-    if not noise_px >= 0:
-        raise DataError(None, f"oracle noise must be >= 0 px, got {noise_px}")
+    _check_noise(noise_px)
     path = Path(sequence)
     with Sequence(path) as seq:
         meta = dict(seq.meta)
@@ -57,6 +56,11 @@ def oracle_spec(sequence: str | os.PathLike, noise_px: float = 0.0):
         return SequenceSpec.from_dict(meta["spec"])
     except (TypeError, ValueError) as exc:
         raise DataError(path, f"field meta.spec is not a simulator spec ({exc})") from None
+
+
+def _check_noise(noise_px: float) -> None:
+    if not noise_px >= 0:
+        raise DataError(None, f"oracle noise must be >= 0 px, got {noise_px}")
 
 
 def simulator_of(sequence: str | os.PathLike):
@@ -95,8 +99,7 @@ class ObservationOracle:
     """
 
     def __init__(self, sequence: str | os.PathLike, cams: StereoCameras, noise_px: float, *, seed: int = 0, simulator=None):
-        if not noise_px >= 0:
-            raise DataError(None, f"oracle noise must be >= 0 px, got {noise_px}")
+        _check_noise(noise_px)
         self.sim = simulator if simulator is not None else simulator_of(sequence)
         self.cams = cams
         self.noise_px = float(noise_px)
@@ -135,7 +138,7 @@ class ObservationOracle:
         model = self.cams.cams[cam]
         sensor = self.sim.rig.cameras[model.name]
         xy = np.asarray(xy, np.float64).reshape(-1, 2)
-        rays = np.c_[xy, np.ones(len(xy))] @ np.linalg.inv(model.K).T  # z = 1 in the camera frame
+        rays = unproject(xy, np.ones(len(xy)), model.K)  # z = 1 in the camera frame
         uv, _ = project(rays, np.asarray(sensor.K, np.float64))
         u, v = np.round(uv[:, 0]).astype(np.int64), np.round(uv[:, 1]).astype(np.int64)
         depth = self._depth(t_us, cam)
