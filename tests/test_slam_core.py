@@ -576,6 +576,28 @@ def test_oracle_projects_the_scene_point_of_a_keypoint(small_flight):
     assert np.all(np.abs(z_point - depth[r, c])[smooth] <= step[smooth] + 1e-4)
 
 
+def test_keypoint_errors_are_measured_without_changing_the_run(small_flight):
+    """``detector.measure_keypoint_errors`` (``run --keypoint-errors``): the trajectory is the plain
+    run's to the last digit (observations are only compared, never replaced), and the distances by
+    track age add up to all measured observations. With track refinement off the same keypoints lie
+    farther from their scene points (refinement aligns each to its landmark's first view)."""
+    results = {}
+    for refine in (True, False):
+        for measure in (False, True):
+            cfg = load_config("accurate")
+            cfg.refinement.enabled = refine
+            cfg.detector.measure_keypoint_errors = measure
+            results[refine, measure] = run_slam(small_flight, StereoClassicalDetector("orb", 300), cfg, mode="sync", progress=False)
+    for refine in (True, False):
+        np.testing.assert_array_equal(results[refine, True].pose7, results[refine, False].pose7)
+        assert "keypoint_errors" not in results[refine, False].info
+        ke = results[refine, True].info["keypoint_errors"]
+        assert ke["observations"] > 500
+        assert sum(b["observations"] for b in ke["by_track_age_s"].values()) == ke["observations"]
+    assert results[True, True].info["refinement"]["observations_refined"] > 0 and results[False, True].info["refinement"] is None
+    assert results[True, True].info["keypoint_errors"]["median_px"] < results[False, True].info["keypoint_errors"]["median_px"]
+
+
 def test_oracle_refuses_a_sequence_without_a_simulator_spec(small_flight, tmp_path):
     import shutil
 
@@ -852,5 +874,74 @@ def test_configs_load_and_reject_unknown_keys(tmp_path):
     f.write_text("init:\n  min_position_inliers: 2\n")  # 4 equations for 3 unknowns leave no outlier check
     with pytest.raises(DataError, match="init.min_position_inliers"):
         load_config(f)
+    for bad in ("window_px: 12", "max_fb_px: 0", "max_anchor_age_s: -1"):
+        f.write_text(f"refinement:\n  {bad}\n")
+        with pytest.raises(DataError, match="refinement." + bad.split(":")[0]):
+            load_config(f)
     with pytest.raises(DataError, match="unknown SLAM config"):
         load_config("nonexistent")
+
+
+def _texture(shape=(120, 160), seed=0) -> np.ndarray:
+    """A smooth random texture in [0, 1] (noise blurred over ~2 px, as a time surface's edges are)."""
+    import cv2
+
+    img = cv2.GaussianBlur(np.random.default_rng(seed).random(shape).astype(np.float32), (0, 0), 2.0)
+    return (img - img.min()) / (img.max() - img.min())
+
+
+def _shifted(img: np.ndarray, dx: float, dy: float) -> np.ndarray:
+    """``img`` moved by (dx, dy) px: the content at x appears at x + dx (bicubic resampling)."""
+    import cv2
+
+    M = np.float32([[1, 0, dx], [0, 1, dy]])
+    return cv2.warpAffine(img, M, img.shape[::-1], flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+
+
+def test_track_refiner_aligns_observations_to_their_anchor():
+    """A textured image moved by a known sub-pixel shift; the detections scatter +-2 px around the true
+    positions. Aligned to the anchors of the first frame, every observation lands on its anchor's
+    point moved by the shift. The bound, 0.1 px, is what the 8-bit images allow (a quantisation step
+    of 1/255 over gradients of ~0.02 per px reads as ~0.05 px in the worst window) plus the
+    tracker's stopping threshold (0.01 px)."""
+    from aerovis_slam.slam.refine import TrackRefiner
+
+    ref = TrackRefiner()
+    img0 = _texture()
+    rng = np.random.default_rng(1)
+    anchors = np.c_[rng.uniform(20, 140, 30), rng.uniform(20, 100, 30)]
+    first = Observations(np.arange(30), np.zeros(30, np.int8), anchors.copy())
+    ref.begin_frame(0, [img0, img0])
+    assert ref.refine(first).xy.tolist() == anchors.tolist()  # no anchors yet: these become them
+    shift = np.array([2.3, -1.6])
+    img1 = _shifted(img0, *shift)
+    detected = anchors + shift + rng.uniform(-2, 2, anchors.shape)
+    ref.begin_frame(20_000, [img1, img1])
+    out = ref.refine(Observations(np.arange(30), np.zeros(30, np.int8), detected.copy()))
+    assert ref.stats.refined == 30 and ref.stats.rejected == 0
+    np.testing.assert_allclose(out.xy, anchors + shift, atol=0.1)
+    # the right camera has no anchors of these landmarks: its observation becomes one, unchanged
+    right = ref.refine(Observations(np.arange(3), np.ones(3, np.int8), detected[:3].copy()))
+    assert right.xy.tolist() == detected[:3].tolist() and (0, 1) in ref.anchors
+
+
+def test_track_refiner_keeps_the_detection_where_the_anchor_is_not_found():
+    """Where the current image holds no structure (no events around the keypoints: no gradient, so
+    the tracker's 2x2 system is singular), the observations keep their detected positions; anchors
+    older than max_anchor_age_s are replaced by the current observation."""
+    from aerovis_slam.slam.refine import TrackRefiner
+
+    ref = TrackRefiner(max_anchor_age_s=0.5)
+    xy = np.array([[40.0, 40.0], [80.0, 60.0], [120.0, 80.0]])
+    ref.begin_frame(0, [_texture()] * 2)
+    ref.refine(Observations(np.arange(3), np.zeros(3, np.int8), xy.copy()))
+    blank = np.full((120, 160), 0.3, np.float32)
+    ref.begin_frame(20_000, [blank, blank])
+    out = ref.refine(Observations(np.arange(3), np.zeros(3, np.int8), xy + 1.0))
+    assert ref.stats.refined == 0 and ref.stats.rejected == 3
+    np.testing.assert_array_equal(out.xy, xy + 1.0)
+    assert all(ref.anchors[(i, 0)][1].tolist() == xy[i].tolist() for i in range(3))  # the anchors stay
+    ref.begin_frame(600_000, [_texture(seed=5)] * 2)
+    ref.refine(Observations(np.arange(3), np.zeros(3, np.int8), xy + 2.0))
+    assert ref.stats.rejected == 3  # the old anchors expired: nothing aligned, three new anchors
+    assert all(ref.anchors[(i, 0)][1].tolist() == (xy[i] + 2.0).tolist() for i in range(3))

@@ -752,6 +752,18 @@ def test_cli_run_with_the_oracle_records_it(tmp_path, capsys):
     assert not bad.exists() and "oracle noise must be >= 0 px" in capsys.readouterr().err
 
 
+def test_cli_keypoint_errors_and_the_oracle_exclude_each_other(tmp_path, capsys):
+    """``run --keypoint-errors --oracle-noise-px``: perfect tracks have no keypoint error to measure;
+    refused before any output exists."""
+    from aerovis_slam.sim.cache import ensure_preset
+
+    seq = ensure_preset("tiny", progress=False) / "tiny_handheld.h5"
+    bad = tmp_path / "bad"
+    assert main(["run", str(seq), "--detector", "orb", "--keypoint-errors", "--oracle-noise-px", "0", "--out", str(bad),
+                 "--quiet"]) == 2
+    assert not bad.exists() and "exclude each other" in capsys.readouterr().err
+
+
 def test_ctrl_c_stops_cleanly_then_aborts(capsys):
     import os
     import signal

@@ -114,10 +114,11 @@ def run_sequence(sequence: str | os.PathLike, detector, config, out_dir: str | o
     """
     sequence = Path(sequence)
     oracle_px = getattr(getattr(config, "detector", None), "oracle_noise_px", None)
-    if oracle_px is not None:  # refuse a recording or a bad noise before any output folder exists
+    measure = bool(getattr(getattr(config, "detector", None), "measure_keypoint_errors", False))
+    if oracle_px is not None or measure:  # refuse a recording or a bad noise before any output folder exists
         from .oracle import oracle_spec
 
-        oracle_spec(sequence, float(oracle_px))
+        oracle_spec(sequence, float(oracle_px or 0.0))
     out = prepare_out_dir(out_dir)
     gt = _load_gt(sequence)  # fails early (DataError) on a missing or foreign file
     mode = mode or getattr(config, "mode", "sync")

@@ -61,6 +61,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--oracle-noise-px", type=float, default=None, metavar="PX",
                    help="diagnostic on aerovis-sim sequences: landmark observations replaced by true projections "
                         "+ Gaussian noise of PX px (perfect tracks; docs/slam.md)")
+    p.add_argument("--keypoint-errors", action="store_true",
+                   help="diagnostic on aerovis-sim sequences: measure each landmark observation's distance to the true "
+                        "projection of its scene point, by track age (metrics.json pipeline_info.keypoint_errors)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -173,6 +176,10 @@ def cmd_run(args) -> int:
     config = _config(args.config, args.mode)
     if args.oracle_noise_px is not None:
         config.detector.oracle_noise_px = float(args.oracle_noise_px)
+    if args.keypoint_errors:
+        if args.oracle_noise_px is not None:
+            raise DataError(None, "--keypoint-errors and --oracle-noise-px exclude each other (perfect tracks have no keypoint error)")
+        config.detector.measure_keypoint_errors = True
     mode = args.mode or config.mode
     detector = make_detector(args.model, args.detector, top_k=getattr(getattr(config, "detector", None), "top_k", None))
     with _stop_on_sigint("the trajectory will be written as partial") as stop:
@@ -186,8 +193,9 @@ def cmd_run(args) -> int:
     summary["trajectory_file"] = metrics.get("trajectory_file")
     summary["ate_pct_final"] = (metrics.get("final") or {}).get("ate_pct")
     summary["final_trajectory_file"] = metrics.get("final_trajectory_file")
-    if (metrics.get("pipeline_info") or {}).get("oracle"):
-        summary["oracle"] = metrics["pipeline_info"]["oracle"]
+    for key in ("oracle", "keypoint_errors"):
+        if (metrics.get("pipeline_info") or {}).get(key):
+            summary[key] = metrics["pipeline_info"][key]
     print(json.dumps(summary))
     if stop.is_set():
         return 130

@@ -77,6 +77,10 @@ class DetectorConfig:
             ``aerovis-sim``, every landmark observation is replaced by the true projection of one
             scene point per landmark plus Gaussian noise of this many px per axis
             (:mod:`~aerovis_slam.slam.oracle`: what a detector with perfect tracks would give).
+        measure_keypoint_errors: a diagnostic on ``aerovis-sim`` sequences: every landmark observation
+            (after refinement) is compared with the true projection of its landmark's scene point,
+            fixed at the first sighting as the oracle fixes it, and the distances by track age go to
+            ``metrics.json`` (``pipeline_info.keypoint_errors``); positions are not changed.
         observation_lag_events_per_px: the keypoints of the time surfaces at ``tau`` are taken to
             show the scene at the time of the N-th newest event before ``tau`` (N = this x the
             buffer's pixels; the mean over both cameras, at most :data:`~aerovis_slam.slam.preprocessing.MAX_OBSERVATION_LAG_US`
@@ -96,6 +100,7 @@ class DetectorConfig:
     keypoint_noise_px: float = 0.0
     keypoint_noise_seed: int = 0
     oracle_noise_px: float | None = None
+    measure_keypoint_errors: bool = False
     observation_lag_events_per_px: float = 0.03
 
 
@@ -140,6 +145,26 @@ class MatchingConfig:
     max_landmark_age_s: float | None = None
     edge_max_ratio: float = 25.0
     update_descriptors: bool = True
+
+
+@dataclass
+class RefinementConfig:
+    """Track refinement: landmark observations aligned to the landmark's anchor view by Lucas-Kanade
+    (:mod:`aerovis_slam.slam.refine`; pixels at the MCTS resolution).
+
+    Attributes:
+        enabled: refine (else every observation stays where the detector put it).
+        window_px: side of the alignment window (odd).
+        max_shift_px: an alignment farther than this from the detection is rejected.
+        max_fb_px: an alignment whose way back misses the anchor by more than this is rejected.
+        max_anchor_age_s: anchors older than this are replaced by the current observation.
+    """
+
+    enabled: bool = True
+    window_px: int = 13
+    max_shift_px: float = 6.0
+    max_fb_px: float = 2.0
+    max_anchor_age_s: float = 5.0
 
 
 @dataclass
@@ -288,7 +313,7 @@ class SlamConfig:
         mode: the mode this setting is meant for (``sync`` | ``async`` | ``live``); the caller may override.
         rate_hz: sync-mode processing rate (and the live-mode rate of a sync setting).
         max_rate_hz: async/live cap: the frontend waits instead of re-processing nearly the same state.
-        input, detector, matching, ransac, keyframes, backend, init, tracking: the sections above.
+        input, detector, matching, refinement, ransac, keyframes, backend, init, tracking: the sections above.
     """
 
     name: str = "default"
@@ -298,6 +323,7 @@ class SlamConfig:
     input: InputConfig = field(default_factory=InputConfig)
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     matching: MatchingConfig = field(default_factory=MatchingConfig)
+    refinement: RefinementConfig = field(default_factory=RefinementConfig)
     ransac: RansacConfig = field(default_factory=RansacConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     backend: BackendConfig = field(default_factory=BackendConfig)
@@ -358,6 +384,12 @@ def _validate(cfg: SlamConfig, path) -> None:
         raise DataError(path, f"rate_hz and max_rate_hz must be positive (got {cfg.rate_hz}, {cfg.max_rate_hz})")
     if cfg.backend.robust not in ("huber", "cauchy"):
         raise DataError(path, f"backend.robust must be 'huber' or 'cauchy', got {cfg.backend.robust!r}")
+    rc = cfg.refinement
+    if rc.window_px < 3 or rc.window_px % 2 == 0:
+        raise DataError(path, f"refinement.window_px must be an odd number >= 3, got {rc.window_px}")
+    for key in ("max_shift_px", "max_fb_px", "max_anchor_age_s"):
+        if not getattr(rc, key) > 0:
+            raise DataError(path, f"refinement.{key} must be positive, got {getattr(rc, key)}")
     if cfg.backend.window_keyframes < 2:
         raise DataError(path, f"backend.window_keyframes must be at least 2, got {cfg.backend.window_keyframes}")
     if cfg.input.max_width < 16 or cfg.input.max_height < 16:

@@ -51,6 +51,7 @@ from .config import SlamConfig
 from .frontend import KeyframeSelector, LandmarkMap, edge_shapes, match_to_map, spread_subset, structure_tensor
 from .imu import ImuStream, align_visual_inertial, gravity_rotation_from_acc, new_preintegration, preintegration_params
 from .ransac import bearings, pnp_ransac, position_given_rotation, relative_pose_ransac, reprojection_error, rotation_ransac
+from .refine import TrackRefiner
 from .stereo import match_stereo, triangulate
 
 
@@ -117,6 +118,8 @@ class StereoInertialOdometry:
                  loop_closer=None, log: WarningLog | None = None, oracle=None):
         self.cams = cams
         self.oracle = oracle  # ObservationOracle (diagnostic): true observation positions (see oracle.py)
+        rc = cfg.refinement
+        self.refiner = TrackRefiner(rc.window_px, rc.max_shift_px, rc.max_fb_px, rc.max_anchor_age_s) if rc.enabled else None
         self.stream = stream
         self.cfg = cfg
         self.params = preintegration_params(noise)
@@ -296,14 +299,20 @@ class StereoInertialOdometry:
         # now and at a keyframe, the images for the stereo search at a keyframe
         images = tuple(cv2.GaussianBlur(np.ascontiguousarray(b.mean(0)), (0, 0), 1.0) for b in batch[:2])
         tensors = tuple(structure_tensor(im) for im in images)
-        ratio = cfg.matching.edge_max_ratio
-        shL = edge_shapes(tensors[0], kpL.xy[mL.keypoint[inlL]], max_ratio=ratio)
-        shR = edge_shapes(tensors[1], kpR.xy[mR.keypoint[inlR]], max_ratio=ratio)
         obs = Observations(np.concatenate([mL.landmark[inlL], mR.landmark[inlR]]),
                            np.concatenate([np.zeros(int(inlL.sum()), np.int8), np.ones(int(inlR.sum()), np.int8)]),
-                           np.concatenate([kpL.xy[mL.keypoint[inlL]], kpR.xy[mR.keypoint[inlR]]]).astype(np.float64),
-                           np.concatenate([shL, shR]))
+                           np.concatenate([kpL.xy[mL.keypoint[inlL]], kpR.xy[mR.keypoint[inlR]]]).astype(np.float64))
         obs_kp = np.concatenate([mL.keypoint[inlL], mR.keypoint[inlR]])
+        if self.refiner is not None:
+            tr = time.perf_counter()
+            # the unblurred channel means: the tracker's window does the smoothing (measured: blurred
+            # images refine fewer observations, and no better)
+            self.refiner.begin_frame(tau, batch[:2].mean(axis=1))
+            obs = self.refiner.refine(obs)
+            timings["refine"] = (time.perf_counter() - tr) * 1e3
+        for c in (0, 1):  # observation shapes at the (refined) positions
+            rows = obs.cam == c
+            obs.shape[rows] = edge_shapes(tensors[c], obs.xy[rows], max_ratio=cfg.matching.edge_max_ratio)
         if self.oracle is not None:
             obs, keep = self.oracle.replace(tau, obs)
             obs_kp = obs_kp[keep]
@@ -352,7 +361,7 @@ class StereoInertialOdometry:
                     # smoothed velocity: only the prediction of the next frame uses it
                     v = 0.5 * v + 0.5 * self.state.v_world
                     state, tracked = NavEstimate(T, v, pred.bias), True
-        timings["tracking"] = (time.perf_counter() - t2) * 1e3
+        timings["tracking"] = (time.perf_counter() - t2) * 1e3 - timings.get("refine", 0.0)
 
         # -- failure handling -------------------------------------------------------------------
         if tracked:
@@ -540,9 +549,12 @@ class StereoInertialOdometry:
                                np.concatenate([kpL.xy[rowsL], xyR]).astype(np.float64),
                                np.concatenate([edge_shapes(tensors[0], kpL.xy[rowsL], max_ratio=ratio),
                                                edge_shapes(tensors[1], xyR, max_ratio=ratio)]))
+        if self.refiner is not None and len(new_obs):
+            self.refiner.anchor(new_obs)
         if self.oracle is not None and len(new_obs):
             new_obs, _ = self.oracle.replace(tau, new_obs)
-            self._triangulate_oracle_pairs(new_obs, T_wc0)
+            if self.oracle.replaces:
+                self._triangulate_oracle_pairs(new_obs, T_wc0)
         all_obs = Observations.concatenate([obs, new_obs])
         if self.initialized:
             tb = time.perf_counter()

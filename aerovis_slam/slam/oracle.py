@@ -86,8 +86,13 @@ class OracleStats:
                 "landmarks": self.landmarks, "landmarks_without_surface": self.no_surface}
 
 
+#: track-age bins (s) of :meth:`ObservationOracle.error_summary`
+ERROR_AGE_BINS_S: tuple[tuple[float, float], ...] = ((0.0, 0.05), (0.05, 0.2), (0.2, 0.5), (0.5, 1.0), (1.0, float("inf")))
+
+
 class ObservationOracle:
-    """Replaces landmark observations by true projections plus noise (see the module docstring).
+    """Replaces landmark observations by true projections plus noise (see the module docstring), or
+    with ``replace=False`` only measures how far the observations lie from them.
 
     Args:
         sequence: the simulated ``.h5`` the run reads.
@@ -96,10 +101,16 @@ class ObservationOracle:
         noise_px: standard deviation of the Gaussian noise per axis (px at the MCTS resolution).
         seed: seed of that noise.
         simulator: the rebuilt simulator (default: :func:`simulator_of`).
+        replace: False: observations keep their positions; the distance of each (after the landmark's
+            first sighting) to its true projection is recorded (:meth:`error_summary`).
     """
 
-    def __init__(self, sequence: str | os.PathLike, cams: StereoCameras, noise_px: float, *, seed: int = 0, simulator=None):
+    def __init__(self, sequence: str | os.PathLike, cams: StereoCameras, noise_px: float, *, seed: int = 0, simulator=None,
+                 replace: bool = True):
         _check_noise(noise_px)
+        self.replaces = bool(replace)
+        self.first_t: dict[int, int] = {}  # landmark id -> time (µs) of its first sighting
+        self._errors: list[np.ndarray] = []  # per call: (K, 2) distance (px), track age (s)
         self.sim = simulator if simulator is not None else simulator_of(sequence)
         self.cams = cams
         self.noise_px = float(noise_px)
@@ -179,6 +190,8 @@ class ObservationOracle:
                     self.points[int(obs.landmark[i])] = p if ok else None
                     self.stats.landmarks += ok
                     self.stats.no_surface += not ok
+        for i in new:
+            self.first_t[int(obs.landmark[i])] = int(t_us)
         xy = np.full((n, 2), np.nan)
         for cam in (0, 1):
             rows = np.flatnonzero(obs.cam == cam)
@@ -186,6 +199,11 @@ class ObservationOracle:
             if have:
                 xy[have] = self.projections(t_us, cam, np.stack([self.points[int(obs.landmark[i])] for i in have]))
         keep = np.isfinite(xy).all(axis=1)
+        if not self.replaces:
+            age = np.array([(t_us - self.first_t.get(int(j), t_us)) * 1e-6 for j in obs.landmark])
+            later = keep & (age > 0)  # a first sighting is its own truth
+            self._errors.append(np.c_[np.linalg.norm(obs.xy[later] - xy[later], axis=1), age[later]])
+            return obs, np.ones(n, bool)
         if self.noise_px > 0 and keep.any():
             xy[keep] += self.rng.normal(0.0, self.noise_px, (int(keep.sum()), 2))
         self.stats.replaced += int(keep.sum())
@@ -193,3 +211,17 @@ class ObservationOracle:
         out = Observations(obs.landmark[keep], obs.cam[keep], xy[keep],
                            np.broadcast_to(np.eye(2), (int(keep.sum()), 2, 2)).copy())
         return out, keep
+
+    def error_summary(self) -> dict:
+        """Distances (px) of the measured observations to their true projections: count, median and 90th
+        percentile over all and per track-age bin (``ERROR_AGE_BINS_S``; the age counts from the
+        landmark's first sighting, whose position defines its scene point)."""
+        e = np.concatenate(self._errors) if self._errors else np.zeros((0, 2))
+
+        def stats(d):
+            return {"observations": int(len(d)), "median_px": float(np.median(d)) if len(d) else None,
+                    "p90_px": float(np.percentile(d, 90)) if len(d) else None}
+
+        out = stats(e[:, 0])
+        out["by_track_age_s"] = {f"{lo:g}-{hi:g}": stats(e[(e[:, 1] > lo) & (e[:, 1] <= hi), 0]) for lo, hi in ERROR_AGE_BINS_S}
+        return out

@@ -53,7 +53,7 @@ from .trajectory import final_trajectory
 
 __all__ = ["SlamResult", "load_config", "run_slam"]
 
-STAGES = ("preprocess", "mcts", "detector", "matching", "tracking", "keyframe", "backend", "loop", "total")
+STAGES = ("preprocess", "mcts", "detector", "matching", "refine", "tracking", "keyframe", "backend", "loop", "total")
 
 
 @dataclass
@@ -180,10 +180,15 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
     # OpenCV's RANSAC draws from its global generator: seed it so that a run is reproducible
     cv2.setRNGSeed(0)
     oracle = None
-    if config.detector.oracle_noise_px is not None:  # diagnostic: perfect tracks (oracle.py)
+    if config.detector.oracle_noise_px is not None or config.detector.measure_keypoint_errors:
+        # diagnostics on simulated sequences (oracle.py): perfect tracks, or the keypoints' distance to them
         from .oracle import ObservationOracle
 
-        oracle = ObservationOracle(path, cams, float(config.detector.oracle_noise_px), seed=config.detector.keypoint_noise_seed)
+        if config.detector.oracle_noise_px is not None and config.detector.measure_keypoint_errors:
+            raise DataError(path, "detector.oracle_noise_px and detector.measure_keypoint_errors exclude each other "
+                                  "(perfect tracks have no keypoint error to measure)")
+        oracle = ObservationOracle(path, cams, float(config.detector.oracle_noise_px or 0.0),
+                                   seed=config.detector.keypoint_noise_seed, replace=not config.detector.measure_keypoint_errors)
     odo = StereoInertialOdometry(cams, stream, calib.imu, config, loop_closer=loop_closer, log=log, oracle=oracle)
     # the setting's detection threshold for learned detectors (restored after the run)
     old_threshold = getattr(detector, "threshold", None)
@@ -231,7 +236,7 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
         tracked.append(bool(res.tracked))
         stages["preprocess"].append(pre_ms)
         stages["mcts"].append(mcts_ms)
-        for k in ("detector", "matching", "tracking", "keyframe", "backend", "loop"):
+        for k in ("detector", "matching", "refine", "tracking", "keyframe", "backend", "loop"):
             stages[k].append(float(res.timings_ms.get(k, 0.0)))
         stages["total"].append(proc_ms)
         bar.update(max(0.0, (tau - shown) * 1e-6))
@@ -353,8 +358,12 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
                                if obs_lag and config.detector.observation_lag_events_per_px > 0 else None),
         "camera_timeshift_us": shifts,
     }
-    if oracle is not None:
+    if oracle is not None and oracle.replaces:
         info["oracle"] = oracle.stats.as_dict(oracle.noise_px)
+    if oracle is not None and not oracle.replaces:
+        info["keypoint_errors"] = oracle.error_summary()
+    # refinement.enabled: how many observations were aligned to their anchors (refine.py)
+    info["refinement"] = odo.refiner.stats.as_dict() if odo.refiner is not None else None
     if failure_trace:
         info["traceback"] = failure_trace
     return SlamResult(
