@@ -635,6 +635,34 @@ def test_bench_runs_each_oracle_noise_as_a_variant(tmp_path, monkeypatch, empty_
     assert all(f"{n} sync" in header for n in names)
 
 
+def test_bench_keypoint_errors_reach_every_run_and_the_table(tmp_path, monkeypatch, empty_config):
+    """``bench --keypoint-errors``: every run measures (the runner sees it in its config), each row
+    carries the run's median keypoint distance and the table adds a table of them; refused together
+    with oracle noise."""
+    import aerovis_slam.slam.oracle as oracle_mod
+
+    seq = _tiny_sequence(tmp_path / "tiny_a.h5")
+    monkeypatch.setattr(oracle_mod, "oracle_spec", lambda sequence, noise_px=0.0: None)  # not a simulated file
+    medians = {"learned": 0.8125, "classical-orb": 1.25}
+
+    def runner(sequence, detector, config, **kw):
+        assert config.detector.measure_keypoint_errors
+        res = _fake_runner()(sequence, detector, config, **kw)
+        res.info = {"keypoint_errors": {"observations": 10, "median_px": medians[detector.name], "p90_px": 2.0}}
+        return res
+
+    monkeypatch.setattr(bench_mod, "_run_slam", runner)
+    dets = [types.SimpleNamespace(name="learned"), types.SimpleNamespace(name="classical-orb")]
+    rows = bench_mod.run_bench([seq], dets, tmp_path / "b", modes=("sync",), config=str(empty_config), loop=False,
+                               progress=False, keypoint_errors=True)
+    assert [r["keypoint_error_px"] for r in rows] == [0.8125, 1.25]
+    table = (tmp_path / "b" / "table.md").read_text()
+    assert "Keypoint error" in table and "| tiny_a | 0.81 | 1.25 |" in table
+    with pytest.raises(ValueError, match="exclude each other"):
+        bench_mod.run_bench([seq], dets, tmp_path / "c", modes=("sync",), progress=False, keypoint_errors=True,
+                            oracle_noise_px=0.5)
+
+
 def test_bench_repeats_perturb_and_aggregate(tmp_path, monkeypatch, empty_config, capsys):
     """Repeat i >= 1 runs with keypoint noise seeded i (seen in the config the runner gets); the
     spread table and ``best_on_mean`` aggregate exactly the runs' ATE."""

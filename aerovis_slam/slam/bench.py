@@ -45,7 +45,7 @@ PLOT_FILE = "traj.png"
 CLASSICAL = ("orb", "sift", "gftt_brief")
 MODE_CONFIG = {"sync": "accurate", "async": "realtime", "live": "realtime"}  # the paper's two settings
 BENCH_FIELDS = ("sequence", "mode", "detector", "status", "ate_rmse_m", "ate_pct", "path_length_m", "rate_hz", "loop_closures",
-                "repeat", "keypoint_noise_px", "ate_pct_final", "loops_better_than_drift")
+                "repeat", "keypoint_noise_px", "ate_pct_final", "loops_better_than_drift", "keypoint_error_px")
 
 
 def make_detector(model: str | os.PathLike | None = None, classical: str | None = None, *, top_k: int | None = None,
@@ -194,6 +194,8 @@ def bench_row(sequence: str, mode: str, detector: str, metrics: dict | None, sta
             "keypoint_noise_px": float(keypoint_noise_px),
             # the final trajectory (traj_final.txt) of the same run; the live outputs above are the headline
             "ate_pct_final": (m.get("final") or {}).get("ate_pct"),
+            # run with --keypoint-errors: median distance (px) of the observations to their scene points
+            "keypoint_error_px": ((m.get("pipeline_info") or {}).get("keypoint_errors") or {}).get("median_px"),
             # closures whose measured relative position beat the odometry's, by the ground truth (None: not judged)
             "loops_better_than_drift": sum(c["error_m"] < c["true_drift_m"] for c in judged) if judged else None}
 
@@ -202,7 +204,7 @@ def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str 
               modes: tuple[str, ...] = ("sync", "async"), config: str | None = None, loop: bool = True, resume: bool = False,
               progress: bool = True, diverge_pct: float = 25.0, diverge_min_m: float = 0.10, log=None,
               stop_event: threading.Event | None = None, repeats: int = 1, keypoint_noise_px: float = 0.2,
-              oracle_noise_px: float | list[float] | None = None) -> list[dict]:
+              oracle_noise_px: float | list[float] | None = None, keypoint_errors: bool = False) -> list[dict]:
     """Run every sequence x detector x mode; write ``bench.json`` and ``table.md`` in ``out_dir``.
 
     Args:
@@ -217,6 +219,9 @@ def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str 
         oracle_noise_px: the perfect-tracks diagnostic (:attr:`~aerovis_slam.slam.config.DetectorConfig.oracle_noise_px`):
             one value or several, each a variant of every detector, named ``<detector>+oracle<X>px``
             in folders, rows and the table (one table compares the noise levels).
+        keypoint_errors: every run measures its observations' distance to their scene points
+            (:attr:`~aerovis_slam.slam.config.DetectorConfig.measure_keypoint_errors`; simulated sequences
+            only, not with ``oracle_noise_px``); the table adds their medians.
 
     Returns:
         The ``bench.json`` rows. Each run's outputs are in ``out_dir/<sequence>/<detector>-<mode>/``
@@ -230,6 +235,8 @@ def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str 
         raise ValueError(f"repeats must be at least 1, got {repeats}")
     if repeats > 1 and not keypoint_noise_px > 0:
         raise ValueError(f"repeats > 1 need keypoint_noise_px > 0 (sync runs would repeat exactly), got {keypoint_noise_px}")
+    if keypoint_errors and oracle_noise_px is not None:
+        raise ValueError("keypoint_errors and oracle_noise_px exclude each other (perfect tracks have no keypoint error)")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     oracles = [None] if oracle_noise_px is None else [float(x) for x in np.atleast_1d(oracle_noise_px)]
@@ -253,6 +260,7 @@ def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str 
                 noise = cfg.detector.keypoint_noise_px
                 if oracle_px is not None:
                     cfg.detector.oracle_noise_px = oracle_px
+                cfg.detector.measure_keypoint_errors = bool(keypoint_errors)
                 metrics = run_sequence(seq, det, cfg, run_dir, mode=mode, loop=loop, progress=False, stop_event=stop_event)
             except KeyboardInterrupt:
                 raise
@@ -363,6 +371,10 @@ def format_table(rows: list[dict]) -> str:
                   "and the last loop-closure pose graph, as OKVIS2's final trajectory; not available live): "
                   "ATE [% of path], live outputs above.", ""]
         lines += first_run_table(lambda r: "" if r.get("ate_pct_final") is None or r["status"] != "ok" else f"{r['ate_pct_final']:.2f} %")
+    if any(r.get("keypoint_error_px") is not None for r in cell.values()):
+        lines += ["", "Keypoint error (`--keypoint-errors`): median distance [px] of the landmark observations to the "
+                  "true projection of the scene point under each landmark's first sighting (after track refinement).", ""]
+        lines += first_run_table(lambda r: "" if r.get("keypoint_error_px") is None else f"{r['keypoint_error_px']:.2f}")
     spread = _spread_cells(all_rows)
 
     def spread_table(key: str) -> list[str]:

@@ -94,6 +94,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--oracle-noise-px", type=float, nargs="+", default=None, metavar="PX",
                    help="perfect tracks + Gaussian noise of PX px (aerovis-sim sequences; see run); several values "
                         "run each detector at each, side by side in one table")
+    p.add_argument("--keypoint-errors", action="store_true",
+                   help="aerovis-sim sequences: each run measures its keypoints' distance to their scene points "
+                        "(see run); the table adds the medians")
     p.add_argument("--diverge-pct", type=float, default=25.0, help="diverged: ATE above this %% of the path length ...")
     p.add_argument("--diverge-min-m", type=float, default=0.10, help="... and above this many metres")
     p.add_argument("--out", required=True, help="output folder")
@@ -244,6 +247,8 @@ def cmd_bench(args) -> int:
         dets.append(make_detector(None, kind, like=learned))
     if not dets:
         raise DataError(None, "nothing to benchmark: --no-learned with no --detector")
+    if args.keypoint_errors and args.oracle_noise_px is not None:
+        raise DataError(None, "--keypoint-errors and --oracle-noise-px exclude each other (perfect tracks have no keypoint error)")
     if args.repeats < 1 or (args.repeats > 1 and not args.keypoint_noise_px > 0):
         raise DataError(None, f"--repeats {args.repeats} --keypoint-noise-px {args.keypoint_noise_px}: repeats must be >= 1, "
                               "and more than one run needs noise > 0 (sync runs would repeat exactly)")
@@ -251,7 +256,8 @@ def cmd_bench(args) -> int:
         rows = run_bench(seqs, dets, args.out, modes=tuple(args.modes), config=args.config, loop=not args.no_loop,
                          resume=args.resume, progress=not args.quiet, diverge_pct=args.diverge_pct,
                          diverge_min_m=args.diverge_min_m, log=None if args.quiet else tqdm.write, stop_event=stop,
-                         repeats=args.repeats, keypoint_noise_px=args.keypoint_noise_px, oracle_noise_px=args.oracle_noise_px)
+                         repeats=args.repeats, keypoint_noise_px=args.keypoint_noise_px, oracle_noise_px=args.oracle_noise_px,
+                         keypoint_errors=args.keypoint_errors)
     summary = {"out": str(Path(args.out)), "runs": len(rows), "ok": sum(r["status"] == "ok" for r in rows),
                "by_detector_mode": summarize(rows)}
     if not args.quiet:
