@@ -373,7 +373,8 @@ def format_table(rows: list[dict]) -> str:
         lines += first_run_table(lambda r: "" if r.get("ate_pct_final") is None or r["status"] != "ok" else f"{r['ate_pct_final']:.2f} %")
     if any(r.get("keypoint_error_px") is not None for r in cell.values()):
         lines += ["", "Keypoint error (`--keypoint-errors`): median distance [px] of the landmark observations to the "
-                  "true projection of the scene point under each landmark's first sighting (after track refinement).", ""]
+                  "true projection of the scene point under each landmark's first sighting (after the track refinement, "
+                  "where the setting has it on).", ""]
         lines += first_run_table(lambda r: "" if r.get("keypoint_error_px") is None else f"{r['keypoint_error_px']:.2f}")
     spread = _spread_cells(all_rows)
 
