@@ -923,6 +923,12 @@ def test_track_refiner_aligns_observations_to_their_anchor():
     # the right camera has no anchors of these landmarks: its observation becomes one, unchanged
     right = ref.refine(Observations(np.arange(3), np.ones(3, np.int8), detected[:3].copy()))
     assert right.xy.tolist() == detected[:3].tolist() and (0, 1) in ref.anchors
+    # images are kept while an anchor uses them: the first frame's left image (30 anchors) and this
+    # frame's right one (3); this frame's left image goes at the next frame
+    ref.begin_frame(40_000, [img1, img1])
+    ref.refine(Observations(np.arange(30), np.zeros(30, np.int8), detected.copy()))
+    assert sorted(t for t, _ in ref.images.values()) == [0, 20_000, 40_000]
+    assert len(ref.images) == 3 and {a[0] for a in ref.anchors.values()} <= set(ref.images)
 
 
 def test_track_refiner_keeps_the_detection_where_the_anchor_is_not_found():

@@ -82,6 +82,7 @@ class TrackRefiner:
         self.criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.01)
         self.anchors: dict[tuple[int, int], tuple[int, np.ndarray]] = {}  # (landmark, cam) -> (image key, xy)
         self.images: dict[int, tuple[int, np.ndarray]] = {}  # image key -> (t µs, uint8 image)
+        self._users: dict[int, int] = {}  # image key -> anchors that use it (an unused image is dropped)
         self._key = 0
         self._t: int | None = None
         self._frame: list = [None, None]  # the current frame's images as given
@@ -110,7 +111,12 @@ class TrackRefiner:
                 continue
             k = self._current(c)
             for i in rows:
-                self.anchors[(int(obs.landmark[i]), c)] = (k, obs.xy[i].copy())
+                key = (int(obs.landmark[i]), c)
+                old = self.anchors.get(key)
+                if old is not None:
+                    self._users[old[0]] -= 1
+                self.anchors[key] = (k, obs.xy[i].copy())
+                self._users[k] = self._users.get(k, 0) + 1
             self.stats.anchors += len(rows)
 
     def refine(self, obs: Observations) -> Observations:
@@ -161,8 +167,13 @@ class TrackRefiner:
         return ok, p1.astype(np.float64), shift
 
     def _prune(self) -> None:
-        """Forget images (and their anchors) older than the anchor age: their landmarks re-anchor."""
+        """Forget images older than the anchor age, with their anchors (those landmarks re-anchor), and
+        images no anchor uses any more (a drone run would otherwise hold ~500 frames, 50 MB, of which
+        ~100 are anchors)."""
         old = {k for k, (t, _) in self.images.items() if self._t - t > self.max_age_us}
         if old:
-            self.images = {k: v for k, v in self.images.items() if k not in old}
             self.anchors = {key: a for key, a in self.anchors.items() if a[0] not in old}
+        unused = old | {k for k in self.images if self._users.get(k, 0) <= 0 and k not in self._frame_keys}
+        if unused:
+            self.images = {k: v for k, v in self.images.items() if k not in unused}
+            self._users = {k: n for k, n in self._users.items() if k not in unused}
