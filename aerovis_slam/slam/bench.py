@@ -113,11 +113,13 @@ def run_sequence(sequence: str | os.PathLike, detector, config, out_dir: str | o
         The metrics dict (as written to ``metrics.json``), with ``out_dir`` and ``trajectory_file``.
     """
     sequence = Path(sequence)
-    oracle_px = getattr(getattr(config, "detector", None), "oracle_noise_px", None)
-    measure = bool(getattr(getattr(config, "detector", None), "measure_keypoint_errors", False))
-    if oracle_px is not None or measure:  # refuse a recording or a bad noise before any output folder exists
-        from .oracle import oracle_spec
+    det_cfg = getattr(config, "detector", None)
+    oracle_px = getattr(det_cfg, "oracle_noise_px", None)
+    measure = bool(getattr(det_cfg, "measure_keypoint_errors", False))
+    if oracle_px is not None or measure:  # refuse a recording, a bad noise or both diagnostics before any output exists
+        from .oracle import check_diagnostics, oracle_spec
 
+        check_diagnostics(oracle_px, measure)
         oracle_spec(sequence, float(oracle_px or 0.0))
     out = prepare_out_dir(out_dir)
     gt = _load_gt(sequence)  # fails early (DataError) on a missing or foreign file
@@ -128,7 +130,6 @@ def run_sequence(sequence: str | os.PathLike, detector, config, out_dir: str | o
     finally:
         if closer is not None:
             closer.close()
-    det_cfg = getattr(config, "detector", None)
     extra = {"loop": closer.summary() if closer is not None else None,
              # the sensitivity probe (DetectorConfig): recorded so that a perturbed run is never mistaken for a plain one
              "keypoint_noise_px": float(getattr(det_cfg, "keypoint_noise_px", 0.0)),
@@ -235,8 +236,10 @@ def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str 
         raise ValueError(f"repeats must be at least 1, got {repeats}")
     if repeats > 1 and not keypoint_noise_px > 0:
         raise ValueError(f"repeats > 1 need keypoint_noise_px > 0 (sync runs would repeat exactly), got {keypoint_noise_px}")
-    if keypoint_errors and oracle_noise_px is not None:
-        raise ValueError("keypoint_errors and oracle_noise_px exclude each other (perfect tracks have no keypoint error)")
+    if keypoint_errors:  # refuse the whole benchmark, not each run
+        from .oracle import check_diagnostics
+
+        check_diagnostics(oracle_noise_px, keypoint_errors)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     oracles = [None] if oracle_noise_px is None else [float(x) for x in np.atleast_1d(oracle_noise_px)]

@@ -179,10 +179,7 @@ def cmd_run(args) -> int:
     config = _config(args.config, args.mode)
     if args.oracle_noise_px is not None:
         config.detector.oracle_noise_px = float(args.oracle_noise_px)
-    if args.keypoint_errors:
-        if args.oracle_noise_px is not None:
-            raise DataError(None, "--keypoint-errors and --oracle-noise-px exclude each other (perfect tracks have no keypoint error)")
-        config.detector.measure_keypoint_errors = True
+    config.detector.measure_keypoint_errors = bool(args.keypoint_errors)  # with the oracle: refused by run_sequence
     mode = args.mode or config.mode
     detector = make_detector(args.model, args.detector, top_k=getattr(getattr(config, "detector", None), "top_k", None))
     with _stop_on_sigint("the trajectory will be written as partial") as stop:
@@ -247,8 +244,6 @@ def cmd_bench(args) -> int:
         dets.append(make_detector(None, kind, like=learned))
     if not dets:
         raise DataError(None, "nothing to benchmark: --no-learned with no --detector")
-    if args.keypoint_errors and args.oracle_noise_px is not None:
-        raise DataError(None, "--keypoint-errors and --oracle-noise-px exclude each other (perfect tracks have no keypoint error)")
     if args.repeats < 1 or (args.repeats > 1 and not args.keypoint_noise_px > 0):
         raise DataError(None, f"--repeats {args.repeats} --keypoint-noise-px {args.keypoint_noise_px}: repeats must be >= 1, "
                               "and more than one run needs noise > 0 (sync runs would repeat exactly)")

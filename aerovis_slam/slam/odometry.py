@@ -297,7 +297,8 @@ class StereoInertialOdometry:
         t2 = time.perf_counter()
         # images of the frame (blurred channel means) and their structure tensors: observation shapes
         # now and at a keyframe, the images for the stereo search at a keyframe
-        images = tuple(cv2.GaussianBlur(np.ascontiguousarray(b.mean(0)), (0, 0), 1.0) for b in batch[:2])
+        means = batch[:2].mean(axis=1)  # (2, H, W)
+        images = tuple(cv2.GaussianBlur(np.ascontiguousarray(m), (0, 0), 1.0) for m in means)
         tensors = tuple(structure_tensor(im) for im in images)
         obs = Observations(np.concatenate([mL.landmark[inlL], mR.landmark[inlR]]),
                            np.concatenate([np.zeros(int(inlL.sum()), np.int8), np.ones(int(inlR.sum()), np.int8)]),
@@ -307,7 +308,7 @@ class StereoInertialOdometry:
             tr = time.perf_counter()
             # the unblurred channel means: the tracker's window does the smoothing (measured: blurred
             # images refine fewer observations, and no better)
-            self.refiner.begin_frame(tau, batch[:2].mean(axis=1))
+            self.refiner.begin_frame(tau, means)
             obs = self.refiner.refine(obs)
             timings["refine"] = (time.perf_counter() - tr) * 1e3
         for c in (0, 1):  # observation shapes at the (refined) positions

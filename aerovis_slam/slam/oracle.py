@@ -58,6 +58,18 @@ def oracle_spec(sequence: str | os.PathLike, noise_px: float = 0.0):
         raise DataError(path, f"field meta.spec is not a simulator spec ({exc})") from None
 
 
+def check_diagnostics(oracle_noise_px: float | None, measure_keypoint_errors: bool) -> None:
+    """The two diagnostics of this module exclude each other (perfect tracks have no keypoint error).
+
+    Raises:
+        DataError: both are asked for.
+    """
+    if oracle_noise_px is not None and measure_keypoint_errors:
+        raise DataError(None, "the keypoint-error measurement (--keypoint-errors, detector.measure_keypoint_errors) and "
+                              "perfect tracks (--oracle-noise-px, detector.oracle_noise_px) exclude each other: perfect "
+                              "tracks have no keypoint error to measure")
+
+
 def _check_noise(noise_px: float) -> None:
     if not noise_px >= 0:
         raise DataError(None, f"oracle noise must be >= 0 px, got {noise_px}")

@@ -184,9 +184,9 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
         # diagnostics on simulated sequences (oracle.py): perfect tracks, or the keypoints' distance to them
         from .oracle import ObservationOracle
 
-        if config.detector.oracle_noise_px is not None and config.detector.measure_keypoint_errors:
-            raise DataError(path, "detector.oracle_noise_px and detector.measure_keypoint_errors exclude each other "
-                                  "(perfect tracks have no keypoint error to measure)")
+        from .oracle import check_diagnostics
+
+        check_diagnostics(config.detector.oracle_noise_px, config.detector.measure_keypoint_errors)
         oracle = ObservationOracle(path, cams, float(config.detector.oracle_noise_px or 0.0),
                                    seed=config.detector.keypoint_noise_seed, replace=not config.detector.measure_keypoint_errors)
     odo = StereoInertialOdometry(cams, stream, calib.imu, config, loop_closer=loop_closer, log=log, oracle=oracle)
