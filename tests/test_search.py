@@ -290,3 +290,39 @@ def test_results_page_verdicts(tmp_path):
     assert "Best on each sequence: a: superevent_plus." in text
     assert "aerovis-eval compare --data bench --onnx-latency --out X" in text and "| 1 | 1 | model.descriptor_dim=128 |" in text
     assert (tmp_path / "docs" / "results_search1_pareto.png").exists() and "(results_search1_pareto.png)" in text
+
+
+def test_results_seed_ablation(tmp_path):
+    """The ablation over several runs per time surface: the runs grouped by their MCTS, their means
+    compared, and an interval that resamples the runs too (a known answer on constant errors)."""
+    from aerovis_train.search.results import write_results
+
+    # 6 pairs of 3 start frames; every model has one error on all of them. pose_auc gives AUC@10 =
+    # (e / 12 + 10 - e) / 10 for N = 6 equal errors e: 49/60 at 2 deg, 38/60 at 4 deg (see the test above)
+    pairs = [{"t0_us": t0, "t1_us": t0 + 1} for t0 in (0, 0, 5, 5, 9, 9)]
+    err = {"ne0": 2.0, "ne1": 4.0, "dt0": 4.0, "dt1": 4.0, "orb": 1.0, "superlite": 1.0}
+    rows = [{"method": m, "kind": "classical" if m == "orb" else "learned", "mcts": m[:2] if m[:2] in ("ne", "dt") else "ne",
+             "auc5": 0.0, "auc10": 100 * (e / 12 + 10 - e) / 10, "auc20": 0.0, "matches": 40.0, "inlier_ratio": 0.5,
+             "latency_ms": 5.0, "source": f"/w/{m}.pt"} for m, e in err.items()]
+    cmp = {"command": "aerovis-eval compare --data bench --models ne0=A ne1=B dt0=C dt1=D --out Y", "pairs": 6,
+           "sequences": ["/c/a.h5"], "rows": rows,
+           "results": {m: [{"sequence": "/c/a.h5", "auc10": 0.0, "pairs": 6, "per_pair": [{**p, "rot_err_deg": e} for p in pairs]}]
+                       for m, e in err.items()}}
+    write_json(tmp_path / "seeds" / "compare.json", cmp)
+    # the shipped superlite (MCTS_Ne, 1 deg) is not one of the runs: the label filter leaves it out
+    r = write_results(tmp_path / "results.md", ablation=tmp_path / "seeds", ablation_methods=r"^(ne|dt)\d+$")
+    v = r["verdicts"]["seed_ablation"]
+    assert v["runs"] == {"ne": 2, "dt": 2} and v["ne_beats_dt"]
+    # means 43.5/60 vs 38/60: +14.47 %. A resample draws ne0 twice (+28.9 %), once (+14.5 %) or never (0 %) with
+    # probabilities 1/4, 1/2, 1/4 (the pairs cancel: every model is constant), so the 2.5 and 97.5 percentiles are
+    # exactly 0 and 11/38
+    assert v["gain_pct"] == pytest.approx(100 * 5.5 / 38)
+    assert v["gain_ci95"] == pytest.approx([0.0, 100 * 11 / 38])
+    assert v["ne_wins"] == 2  # ne0 beats both dt runs; ne1 ties them
+    text = (tmp_path / "results.md").read_text()
+    assert "MCTS_Ne 72.5 ± 13.0 % over 2 runs (63.3-81.7), MCTS_dt 63.3 ± 0.0 % over 2 runs (63.3-63.3)" in text
+    assert "(means): +14.5 % (95 % interval +0.0 to +28.9 %, bootstrap over 3 start frames and the runs of each side)" in text
+    assert "| superlite |" not in text and "| orb |" not in text
+    # without the filter the shipped MCTS_Ne model joins its side; a side without models is reported, not divided by
+    r = write_results(tmp_path / "r2.md", ablation=tmp_path / "seeds", ablation_methods="^ne")
+    assert r["verdicts"]["seed_ablation"]["ne_beats_dt"] is None and "Not measured: no learned MCTS_dt model" in (tmp_path / "r2.md").read_text()

@@ -8,7 +8,7 @@
         jobs on different machines or under different load become comparable), then summarize again
     aerovis-search optuna [--search optuna] [search.n_trials=20] [TRAIN OVERRIDES ...]
         guided search configured by conf/search/<name>.yaml (see aerovis_train/search/optuna_search.py)
-    aerovis-search results [--compare DIR] [--search DIR ...] [--out docs/results.md]
+    aerovis-search results [--compare DIR] [--ablation DIR [--ablation-methods REGEX]] [--search DIR ...] [--out docs/results.md]
         the results page from the outputs of `aerovis-eval compare` and of searches
 
 A grid search is Hydra's own: ``python train.py -m model.encoder=vgg_lite,vgg,mobilenetv3,maxvit
@@ -47,6 +47,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("overrides", nargs="*", help="search.* overrides and train.py overrides applied to every trial")
     p = sub.add_parser("results", help="write docs/results.md from `aerovis-eval compare --out` and search folders")
     p.add_argument("--compare", help="folder (or compare.json) written by `aerovis-eval compare --out`")
+    p.add_argument("--ablation", help="an `aerovis-eval compare --out` folder with several training runs (seeds) of MCTS_Ne and "
+                                      "MCTS_dt models: their mean AUC@10 compared")
+    p.add_argument("--ablation-methods", help="regular expression: only the --ablation methods whose label matches it")
     p.add_argument("--search", action="append", default=[], help="a search folder (repeatable)")
     p.add_argument("--out", default="docs/results.md", help="output Markdown (default docs/results.md)")
     p.add_argument("--top", type=int, default=20, help="leaderboard rows per search (default 20)")
@@ -80,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "results":
             from .results import write_results
 
-            r = write_results(args.out, args.compare, args.search, args.top)
+            r = write_results(args.out, args.compare, args.search, args.top, args.ablation, args.ablation_methods)
             print(f"wrote {r['out']}", file=sys.stderr)
             print(json.dumps(r))
         sys.stdout.flush()

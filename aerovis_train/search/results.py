@@ -1,15 +1,18 @@
 """``docs/results.md``: the measured tables, generated from the outputs of the commands that measure them.
 
-    aerovis-search results --compare RUN/compare [--search MULTIRUN_DIR ...] [--out docs/results.md]
+    aerovis-search results --compare RUN/compare [--ablation RUN/seeds] [--search MULTIRUN_DIR ...] [--out docs/results.md]
 
 Inputs (nothing is re-measured here, so the page always shows what the commands wrote):
 
 * ``--compare``: the folder (or ``compare.json``) of ``aerovis-eval compare --data bench
   --onnx-latency --out DIR``: every model and baseline on the same pairs.
+* ``--ablation``: another ``aerovis-eval compare`` folder, of several training runs (seeds) of one
+  network on each time surface (``--ablation-methods REGEX`` picks them by label): one trained model
+  per side says little when two seeds of one recipe differ by several points.
 * ``--search``: folders of searches (``python train.py -m ...`` or ``aerovis-search optuna``); their
   leaderboards are (re)built by :func:`aerovis_train.search.leaderboard.summarize_dir`.
 
-Sections: all methods; the MCTS_Ne vs MCTS_dt ablation (SuperEvent+ vs SuperEvent); SuperLitE vs
+Sections: all methods; the MCTS_Ne vs MCTS_dt ablation (SuperEvent+ vs SuperEvent, and over seeds); SuperLitE vs
 SuperEvent+ accuracy and speed; the classical baselines; each search's leaderboard and Pareto plot.
 Each section names the command that reproduces it and states, for the issue's targets and the
 paper's claims, whether this run meets them.
@@ -77,6 +80,12 @@ def bootstrap_ci(err_a: np.ndarray, err_b: np.ndarray, cluster: np.ndarray, stat
     and overlap in time, so they are not independent: whole start-frame clusters are resampled, not
     single pairs (resampling pairs would give too narrow an interval).
 
+    ``err_a``/``err_b`` are the rotation errors (deg) of one method each, shape (pairs,), or of
+    several models each, shape (models, pairs): training runs of one recipe with different seeds.
+    Then every resample also draws each side's models with replacement, and a side's AUC is the mean
+    over its drawn models, so the interval covers the spread between training runs as well as the
+    spread between pairs (one run per side would hide how much a second seed can differ).
+
     Example:
         >>> a, b = np.array([1.0, 2, 30, 4]), np.array([2.0, 3, 40, 5])
         >>> lo, hi = bootstrap_ci(a, b, np.arange(4), lambda x, y: x - y, n=200)
@@ -86,12 +95,19 @@ def bootstrap_ci(err_a: np.ndarray, err_b: np.ndarray, cluster: np.ndarray, stat
     from aerovis_train.eval.pose import pose_auc
 
     rng = np.random.default_rng(seed)
+    err_a, err_b = np.atleast_2d(err_a), np.atleast_2d(err_b)
     ids = np.unique(cluster)
     members = [np.flatnonzero(cluster == c) for c in ids]
+
+    def side_auc(errs: np.ndarray, pick: np.ndarray) -> float:
+        # a single model draws nothing, so one-model intervals stay those of the plain paired bootstrap
+        models = rng.integers(0, len(errs), len(errs)) if len(errs) > 1 else [0]
+        return float(np.mean([pose_auc(errs[m, pick], (threshold,))[0] for m in models]))
+
     vals = []
     for _ in range(n):
         pick = np.concatenate([members[k] for k in rng.integers(0, len(ids), len(ids))])
-        vals.append(stat(pose_auc(err_a[pick], (threshold,))[0], pose_auc(err_b[pick], (threshold,))[0]))
+        vals.append(stat(side_auc(err_a, pick), side_auc(err_b, pick)))
     lo, hi = np.nanpercentile(np.asarray(vals, np.float64), [2.5, 97.5])
     return float(lo), float(hi)
 
@@ -203,6 +219,60 @@ def section_ablation(cmp: dict) -> tuple[str, dict]:
     return "\n".join(lines), verdict
 
 
+def section_seed_ablation(cmp: dict, methods: str | None = None) -> tuple[str, dict]:
+    """MCTS_Ne vs MCTS_dt over several training runs per time surface (e.g. seeds).
+
+    Every learned method of the comparison (those whose label matches the regular expression
+    ``methods``, when given) is grouped by the time surface it reads (its row's ``mcts``); the
+    groups' mean AUC@10 are compared, with an interval that resamples both the start frames and the
+    runs (:func:`bootstrap_ci`).
+    """
+    import re
+
+    rows = [r for r in cmp["rows"] if r.get("kind") == "learned" and (methods is None or re.search(methods, r["method"]))]
+    groups = {k: [r for r in rows if r.get("mcts") == k] for k in ("ne", "dt")}
+    lines = ["## MCTS_Ne vs MCTS_dt over several training runs", "",
+             f"Command: `{cmp['command']}` ({cmp.get('created', 'date unknown')}); {cmp['pairs']} pairs, the same for every run"
+             + (f"; the runs: labels matching `{methods}`" if methods else "") + ".", ""]
+    verdict: dict = {"ne_beats_dt": None, "gain_pct": None, "gain_ci95": None, "runs": {k: len(v) for k, v in groups.items()}}
+    if not groups["ne"] or not groups["dt"]:
+        lines += [f"Not measured: no learned {'MCTS_Ne' if not groups['ne'] else 'MCTS_dt'} model among the selected methods.", ""]
+        return "\n".join(lines), verdict
+    lines += ["| run | time surface | AUC@5 | AUC@10 | AUC@20 | matches/pair | inlier ratio | weights |",
+              "|---|---|---:|---:|---:|---:|---:|---|"]
+    for k, surf in (("ne", "MCTS_Ne"), ("dt", "MCTS_dt")):
+        for r in groups[k]:
+            lines.append(f"| {r['method']} | {surf} | {_f(r['auc5'])} | {_f(r['auc10'])} | {_f(r['auc20'])} | {_f(r['matches'])} | "
+                         f"{_f(r['inlier_ratio'], 3)} | `{Path(r.get('source') or '?').name}` |")
+    auc = {k: np.array([r["auc10"] for r in v], np.float64) for k, v in groups.items()}
+    mean = {k: float(v.mean()) for k, v in auc.items()}
+    gain = 100.0 * (mean["ne"] - mean["dt"]) / mean["dt"] if mean["dt"] > 0 else None
+    wins = int(sum(a > b for a in auc["ne"] for b in auc["dt"]))
+    ci, ci_txt = None, ""
+    errs = {k: [_pair_errors(cmp, r["method"]) for r in v] for k, v in groups.items()}
+    if all(e is not None for v in errs.values() for e in v) and len({len(e[0]) for v in errs.values() for e in v}) == 1:
+        ea, eb = np.stack([e[0] for e in errs["ne"]]), np.stack([e[0] for e in errs["dt"]])
+        cluster = errs["ne"][0][1]
+        ci = bootstrap_ci(ea, eb, cluster, lambda x, y: 100.0 * (x - y) / y if y > 0 else np.nan)
+        ci_txt = (f" (95 % interval {ci[0]:+.1f} to {ci[1]:+.1f} %, bootstrap over {len(np.unique(cluster))} start frames "
+                  f"and the runs of each side)")
+    verdict = {"ne_beats_dt": mean["ne"] > mean["dt"], "gain_pct": gain, "gain_ci95": ci, "runs": {k: len(v) for k, v in groups.items()},
+               "auc10_mean": mean, "ne_wins": wins}
+
+    def spread(k):
+        v = auc[k]
+        sd = f" ± {v.std(ddof=1):.1f}" if len(v) > 1 else ""
+        return f"{mean[k]:.1f}{sd} % over {len(v)} run{'s' if len(v) > 1 else ''} ({v.min():.1f}-{v.max():.1f})"
+
+    lines += ["", f"AUC@10, mean ± standard deviation: MCTS_Ne {spread('ne')}, MCTS_dt {spread('dt')}. "
+                  f"MCTS_Ne is higher in {wins} of the {len(auc['ne']) * len(auc['dt'])} (MCTS_Ne run, MCTS_dt run) pairings.",
+              "",
+              f"Relative AUC@10 gain of MCTS_Ne (means): {'n/a' if gain is None else f'{gain:+.1f}'} %{ci_txt} (paper: +{PAPER_NE_GAIN} %). "
+              f"Target (MCTS_Ne beats MCTS_dt in AUC@10): {_met(verdict['ne_beats_dt'])}"
+              + (" on the means, but the interval includes 0" if ci and ci[0] <= 0 <= ci[1] else "") + ".", ""]
+    return "\n".join(lines), verdict
+
+
 def section_lite(cmp: dict) -> tuple[str, dict]:
     by = _rows_by_method(cmp)
     lite, plus, se = by.get("superlite"), by.get("superevent_plus"), by.get("superevent")
@@ -299,11 +369,15 @@ def section_search(summary: dict, png: str | None, top: int) -> str:
 
 
 def write_results(out: str | os.PathLike, compare: str | os.PathLike | None = None, searches: list[str] | None = None,
-                  top: int = 20) -> dict:
-    """Generate the results page; returns ``{"out", "verdicts", "searches"}``."""
+                  top: int = 20, ablation: str | os.PathLike | None = None, ablation_methods: str | None = None) -> dict:
+    """Generate the results page; returns ``{"out", "verdicts", "searches"}``.
+
+    ``ablation``: a second ``aerovis-eval compare`` folder holding several training runs per time
+    surface (see :func:`section_seed_ablation`; ``ablation_methods`` selects its methods by label)."""
     out = Path(out)
-    cmd = "aerovis-search results" + (f" --compare {compare}" if compare else "") + "".join(f" --search {s}" for s in searches or []) \
-        + f" --out {out}"
+    cmd = ("aerovis-search results" + (f" --compare {compare}" if compare else "")
+           + (f" --ablation {ablation}" if ablation else "") + (f" --ablation-methods '{ablation_methods}'" if ablation_methods else "")
+           + "".join(f" --search {s}" for s in searches or []) + f" --out {out}")
     parts = ["# Results", "",
              f"Generated by `{cmd}` on {time.strftime('%Y-%m-%d')} from the outputs of the commands named in each section; "
              "regenerate rather than edit. Data: the simulator's `bench` preset (seed 0) unless a command says otherwise.", ""]
@@ -321,6 +395,10 @@ def write_results(out: str | os.PathLike, compare: str | os.PathLike | None = No
     else:
         parts += ["## Comparisons", "", "Not measured: run `aerovis-eval compare --data bench --onnx-latency --out DIR` and pass "
                   "`--compare DIR`.", ""]
+    if ablation:
+        text, v = section_seed_ablation(load_compare(ablation), ablation_methods)
+        parts.append(text)
+        verdicts["seed_ablation"] = v
     done = []
     for i, s in enumerate(searches or []):
         summary = summarize_dir(s)
