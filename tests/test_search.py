@@ -326,3 +326,6 @@ def test_results_seed_ablation(tmp_path):
     # without the filter the shipped MCTS_Ne model joins its side; a side without models is reported, not divided by
     r = write_results(tmp_path / "r2.md", ablation=tmp_path / "seeds", ablation_methods="^ne")
     assert r["verdicts"]["seed_ablation"]["ne_beats_dt"] is None and "Not measured: no learned MCTS_dt model" in (tmp_path / "r2.md").read_text()
+    with pytest.raises(DataError, match="--ablation-methods"):
+        write_results(tmp_path / "r3.md", ablation=tmp_path / "seeds", ablation_methods="(ne")
+    assert not (tmp_path / "r3.md").exists()

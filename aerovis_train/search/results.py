@@ -229,7 +229,11 @@ def section_seed_ablation(cmp: dict, methods: str | None = None) -> tuple[str, d
     """
     import re
 
-    rows = [r for r in cmp["rows"] if r.get("kind") == "learned" and (methods is None or re.search(methods, r["method"]))]
+    try:
+        pattern = re.compile(methods) if methods is not None else None
+    except re.error as exc:
+        raise DataError(None, f"--ablation-methods {methods!r} is not a regular expression ({exc})") from None
+    rows = [r for r in cmp["rows"] if r.get("kind") == "learned" and (pattern is None or pattern.search(r["method"]))]
     groups = {k: [r for r in rows if r.get("mcts") == k] for k in ("ne", "dt")}
     lines = ["## MCTS_Ne vs MCTS_dt over several training runs", "",
              f"Command: `{cmp['command']}` ({cmp.get('created', 'date unknown')}); {cmp['pairs']} pairs, the same for every run"
