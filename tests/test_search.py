@@ -133,14 +133,14 @@ def test_sweep_jobs_write_metrics(tmp_path, sim_cache, capsys):
     sweep = tmp_path / "multirun"
     cmd = [sys.executable, str(REPO_ROOT / "train.py"), "-m", "data.preset=tiny", f"data.cache_dir={sim_cache}", "data.val_sequences=1",
            "data.samples_per_epoch=4", "data.batch_size=2", "data.num_workers=0", "val.max_pairs=3", "val.rate_hz=20",
-           "+trainer.max_steps=2", "data.crop=[40,56]", "torch_threads=1", "metrics.repeats=2",
+           "trainer.max_steps=2", "data.crop=[40,56]", "torch_threads=1", "metrics.repeats=2",
            "model.descriptor_dim=32,64", f"hydra.sweep.dir={sweep}"]
     res = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     jobs = {m["descriptor_dim"]: m for m in (json.loads(p.read_text()) for p in sorted(sweep.glob("*/metrics.json")))}
     assert sorted(jobs) == [32, 64]
     for dim, m in jobs.items():
-        assert f"model.descriptor_dim={dim}" in m["overrides"] and "+trainer.max_steps=2" in m["overrides"]
+        assert f"model.descriptor_dim={dim}" in m["overrides"] and "trainer.max_steps=2" in m["overrides"]
         run = Path(m["run_dir"])
         summary = json.loads((run / "summary.json").read_text())
         # AUC@10 of the re-validated selected checkpoint equals the score that selected it: the same

@@ -123,7 +123,7 @@ def sim_cache(tmp_path_factory):
 @pytest.mark.parametrize("model,crop", [("superlite", "[40,56]"), ("superevent_plus", "[40,40]"), ("superevent", "[40,40]")])
 def test_every_model_config_trains(tmp_path, sim_cache, model, crop):
     run = tmp_path / "run"
-    res = _train(run, f"model={model}", f"data.crop={crop}", "+trainer.max_steps=2", cache=sim_cache)
+    res = _train(run, f"model={model}", f"data.crop={crop}", "trainer.max_steps=2", cache=sim_cache)
     assert res.returncode == 0, res.stderr[-3000:]
     summary = json.loads((run / "summary.json").read_text())
     assert summary["model"] == model and summary["steps"] == 2
@@ -137,9 +137,9 @@ def test_every_model_config_trains(tmp_path, sim_cache, model, crop):
 
 def test_resume_continues_from_last_checkpoint(tmp_path, sim_cache):
     run = tmp_path / "run"
-    first = _train(run, "data.crop=[40,56]", "+trainer.max_steps=2", cache=sim_cache)
+    first = _train(run, "data.crop=[40,56]", "trainer.max_steps=2", cache=sim_cache)
     assert first.returncode == 0, first.stderr[-3000:]
-    second = _train(run, "data.crop=[40,56]", "+trainer.max_steps=4", cache=sim_cache)
+    second = _train(run, "data.crop=[40,56]", "trainer.max_steps=4", cache=sim_cache)
     assert second.returncode == 0, second.stderr[-3000:]
     assert "resuming from" in second.stdout
     assert json.loads((run / "summary.json").read_text())["steps"] == 4  # 2 restored + 2 new, not 4 new
@@ -205,7 +205,7 @@ def test_ddp_trains_with_two_processes(tmp_path, sim_cache):
 
     run = tmp_path / "run"
     res = _train(run, "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2", "trainer.precision=32",
-                 "trainer.sync_batchnorm=false", "checkpoint_every_min=0", "data.crop=[40,56]", "+trainer.max_steps=3",
+                 "trainer.sync_batchnorm=false", "checkpoint_every_min=0", "data.crop=[40,56]", "trainer.max_steps=3",
                  cache=sim_cache)
     assert res.returncode == 0, res.stderr[-3000:]
     assert res.stdout.count("best val AUC@10") == 1
@@ -219,9 +219,9 @@ def test_validation_pools_both_cameras_and_warns_when_few_pairs(tmp_path, sim_ca
     """The default validation scores cam0 and cam1 of each held-out sequence: with val.max_pairs=3
     (per sequence and camera) the one tiny validation sequence gives 3 pairs from one camera and 6
     from both; 6 pairs are below val.min_pairs, which is said once."""
-    one = _train(tmp_path / "one", "data.crop=[40,56]", "+trainer.max_steps=1", "val.cam=cam0", cache=sim_cache)
+    one = _train(tmp_path / "one", "data.crop=[40,56]", "trainer.max_steps=1", "val.cam=cam0", cache=sim_cache)
     assert one.returncode == 0, one.stderr[-3000:]
-    both = _train(tmp_path / "both", "data.crop=[40,56]", "+trainer.max_steps=1", cache=sim_cache)
+    both = _train(tmp_path / "both", "data.crop=[40,56]", "trainer.max_steps=1", cache=sim_cache)
     assert both.returncode == 0, both.stderr[-3000:]
     pairs = {k: json.loads((tmp_path / k / "metrics.json").read_text())["val_pairs"] for k in ("one", "both")}
     assert pairs == {"one": 3.0, "both": 6.0}
@@ -237,7 +237,7 @@ def test_fine_tuning_starts_from_the_given_weights(tmp_path, sim_cache):
     from aerovis_train.checkpoints import load_model
 
     run = tmp_path / "run"
-    res = _train(run, "init_weights=superlite", "data.crop=[40,56]", "optim.lr=0.0", "+trainer.max_steps=1", cache=sim_cache)
+    res = _train(run, "init_weights=superlite", "data.crop=[40,56]", "optim.lr=0.0", "trainer.max_steps=1", cache=sim_cache)
     assert res.returncode == 0, res.stderr[-3000:]
     assert "initialised from" in res.stdout
     ship, _, _ = load_model("superlite")
@@ -245,14 +245,14 @@ def test_fine_tuning_starts_from_the_given_weights(tmp_path, sim_cache):
     tuned_params = dict(tuned.named_parameters())
     for k, a in ship.named_parameters():
         assert torch.equal(a, tuned_params[k]), k
-    bad = _train(tmp_path / "run2", "model=superevent_plus", "init_weights=superlite", "data.crop=[40,40]", "+trainer.max_steps=1",
+    bad = _train(tmp_path / "run2", "model=superevent_plus", "init_weights=superlite", "data.crop=[40,40]", "trainer.max_steps=1",
                  cache=sim_cache)
     assert bad.returncode == 2 and "superlite model" in bad.stderr and "superevent_plus" in bad.stderr
     assert "Traceback" not in bad.stderr
 
 
 def test_bad_training_input_is_explained(tmp_path, sim_cache):
-    res = _train(tmp_path / "run", "model=superevent_plus", "data.crop=[40,56]", "data.crop_fit=error", "+trainer.max_steps=1", cache=sim_cache)
+    res = _train(tmp_path / "run", "model=superevent_plus", "data.crop=[40,56]", "data.crop_fit=error", "trainer.max_steps=1", cache=sim_cache)
     assert res.returncode == 2 and "must be a multiple of 40" in res.stderr and "Traceback" not in res.stderr
     from aerovis_slam.io.sequence import SequenceWriter
     from aerovis_slam.events import EventArray
