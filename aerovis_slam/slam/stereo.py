@@ -172,8 +172,11 @@ def search_disparity(img0: np.ndarray, img1: np.ndarray, xy0: np.ndarray, *, min
         a, b, c = score[k - 1], score[k], score[k + 1]
         den = a - 2 * b + c
         delta = 0.5 * (a - c) / den if den < 0 else 0.0
-        # strip index k is the right centre u0 - d_hi + k, so d = d_hi - (k + delta)
-        disp[i] = d_hi - (k + delta) + (xy0[i, 0] - u0)
+        # strip index k is the right centre u0 - d_hi + k, so d = d_hi - (k + delta). That is the
+        # shift of the patch around the keypoint's pixel u0 and so the keypoint's own disparity (the
+        # two views are locally one image shifted): the keypoint's fraction of a pixel does not enter
+        # (adding x0 - u0 made every disparity wrong by that fraction, 0.13 px rms for SuperLitE)
+        disp[i] = d_hi - (k + delta)
         ok[i] = True
     return disp, ok
 
