@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -790,6 +791,36 @@ def test_cli_keypoint_errors_and_the_oracle_exclude_each_other(tmp_path, capsys)
     assert main(["run", str(seq), "--detector", "orb", "--keypoint-errors", "--oracle-noise-px", "0", "--out", str(bad),
                  "--quiet"]) == 2
     assert not bad.exists() and "exclude each other" in capsys.readouterr().err
+
+
+def test_cli_bench_preset_seed_runs_that_seeds_sequences(tmp_path, capsys, monkeypatch, empty_config):
+    """``bench --preset-seed N``: the preset generated with seed N (another cache folder: other rooms
+    and paths), said in the summary line; a negative seed is refused before anything is written."""
+    from aerovis_slam.io.sequence import Sequence
+    from aerovis_slam.sim.cache import ensure_preset
+
+    ran: list[Path] = []
+    runner = _fake_runner()
+
+    def run(sequence, *args, **kwargs):
+        ran.append(Path(sequence))
+        return runner(sequence, *args, **kwargs)
+
+    monkeypatch.setattr(bench_mod, "_run_slam", run)
+    common = ["bench", "--no-learned", "--detector", "orb", "--modes", "sync", "--config", str(empty_config), "--no-loop",
+              "--quiet"]
+    out = tmp_path / "b"
+    assert main(common + ["--sequences", "tiny", "--preset-seed", "1", "--out", str(out)]) == 0
+    line = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    seed0, seed1 = ensure_preset("tiny", progress=False), ensure_preset("tiny", seed=1, progress=False)
+    assert line["preset_seed"] == 1 and sorted(ran) == sorted(seed1.glob("*.h5")) and len(ran) == 2
+    # the stand-in's trajectory is not these sequences' ground truth: scored (ok or diverged), never failed
+    assert all(r["status"] != "failed" for r in json.loads((out / "bench.json").read_text()))
+    with Sequence(seed0 / "tiny_handheld.h5") as a, Sequence(seed1 / "tiny_handheld.h5") as b:
+        assert a.num_events("cam0") != b.num_events("cam0")  # another scene, not a copy
+    bad = tmp_path / "bad"
+    assert main(common + ["--preset-seed", "-1", "--out", str(bad)]) == 2
+    assert not bad.exists() and "--preset-seed -1" in capsys.readouterr().err
 
 
 def test_ctrl_c_stops_cleanly_then_aborts(capsys):

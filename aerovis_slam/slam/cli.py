@@ -3,8 +3,8 @@
     aerovis-slam run SEQ.h5 [--model BUNDLE | --detector orb|sift|gftt_brief]
                      [--config realtime|accurate|FILE] [--mode sync|async|live] [--no-loop] --out DIR [--quiet]
     aerovis-slam eval GT EST.txt [--align se3|sim3|none] [--max-diff S] [--interpolate] [--rpe-delta S]
-    aerovis-slam bench [--model BUNDLE] [--detector orb] [--sequences NAME|SEQ.h5 ...] [--modes sync async]
-                       [--config NAME|FILE] [--no-loop] [--resume] --out DIR
+    aerovis-slam bench [--model BUNDLE] [--detector orb] [--sequences NAME|SEQ.h5 ...] [--preset-seed N]
+                       [--modes sync async] [--config NAME|FILE] [--no-loop] [--resume] --out DIR
     aerovis-slam vocab (--model BUNDLE | --detector orb|sift|gftt_brief) [--data train|DIR|SEQ.h5 ...]
                        [--frames N] [--words K] [--out FILE]
 
@@ -18,7 +18,8 @@ Without ``--model`` / ``--detector`` it uses the shipped default bundle (SuperLi
 ``eval`` compares two TUM files (or a canonical ``.h5``'s ground truth as GT) with evo and prints
 ``{"ate_rmse_m", "pairs", "align", ...}``.
 
-``bench`` runs every sequence of the simulator's ``bench`` preset (or ``--sequences``) in sync
+``bench`` runs every sequence of the simulator's ``bench`` preset (seed 0, or ``--preset-seed N``: other
+rooms and paths of the same kinds; or ``--sequences``) in sync
 (``accurate`` setting) and async (``realtime`` setting) mode with the learned detector and the
 classical one on the same time surfaces, and writes ``DIR/table.md`` (paper Table I form),
 ``DIR/bench.json`` and each run's outputs under ``DIR/<sequence>/<detector>-<mode>/``.
@@ -82,6 +83,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--no-learned", action="store_true", help="benchmark only the classical detector(s)")
     p.add_argument("--sequences", nargs="+", default=None,
                    help="sequence names of the bench preset or .h5 files (default: all of the bench preset)")
+    p.add_argument("--preset-seed", type=int, default=0,
+                   help="the bench preset generated with this seed (other rooms and paths, cached on first use): "
+                        "the settings were tuned on seed 0, so other seeds are held-out data (default 0)")
     p.add_argument("--modes", nargs="+", choices=("sync", "async", "live"), default=["sync", "async"])
     p.add_argument("--config", default=None, help="one setting for all modes (default: accurate for sync, realtime for async)")
     p.add_argument("--no-loop", action="store_true", help="disable loop closure")
@@ -114,8 +118,9 @@ def _parser() -> argparse.ArgumentParser:
     return ap
 
 
-def _sequences(items: list[str], preset_default: str) -> list[Path]:
-    """Files, folders of ``*.h5``, preset names, or sequence names of ``preset_default``."""
+def _sequences(items: list[str], preset_default: str, seed: int = 0) -> list[Path]:
+    """Files, folders of ``*.h5``, preset names, or sequence names of ``preset_default``; presets
+    (and the sequence names of ``preset_default``) generated with ``seed``, cached on first use."""
     from ..sim.cache import ensure_preset
     from ..sim.presets import PRESETS
 
@@ -130,13 +135,13 @@ def _sequences(items: list[str], preset_default: str) -> list[Path]:
                 raise DataError(p, "folder holds no .h5 sequences")
             out += found
         elif item in PRESETS:
-            out += sorted(ensure_preset(item).glob("*.h5"))
+            out += sorted(ensure_preset(item, seed=seed).glob("*.h5"))
         else:
-            folder = ensure_preset(preset_default)
+            folder = ensure_preset(preset_default, seed=seed)
             cand = folder / f"{item}.h5"
             if not cand.is_file():
                 names = sorted(q.stem for q in folder.glob("*.h5"))
-                raise DataError(p, f"no such file, folder or sequence of preset {preset_default!r} (it has {names})")
+                raise DataError(p, f"no such file, folder or sequence of preset {preset_default!r} seed {seed} (it has {names})")
             out.append(cand)
     return out
 
@@ -233,7 +238,9 @@ def cmd_bench(args) -> int:
 
     from .bench import make_detector, run_bench, summarize
 
-    seqs = _sequences(args.sequences or ["bench"], "bench")
+    if args.preset_seed < 0:
+        raise DataError(None, f"--preset-seed {args.preset_seed}: a preset seed is >= 0")
+    seqs = _sequences(args.sequences or ["bench"], "bench", seed=args.preset_seed)
     dets = []
     learned = None
     if not args.no_learned:
@@ -254,7 +261,7 @@ def cmd_bench(args) -> int:
                          repeats=args.repeats, keypoint_noise_px=args.keypoint_noise_px, oracle_noise_px=args.oracle_noise_px,
                          keypoint_errors=args.keypoint_errors)
     summary = {"out": str(Path(args.out)), "runs": len(rows), "ok": sum(r["status"] == "ok" for r in rows),
-               "by_detector_mode": summarize(rows)}
+               "preset_seed": args.preset_seed, "by_detector_mode": summarize(rows)}
     if not args.quiet:
         print((Path(args.out) / "table.md").read_text(), file=sys.stderr)
     summary["stopped"] = stop.is_set()
