@@ -885,6 +885,40 @@ def test_configs_load_and_reject_unknown_keys(tmp_path):
         load_config("nonexistent")
 
 
+def test_event_support_counts_the_window_and_drops_lone_events(tmp_path, tiny_preset):
+    """``event_support``: pixels with an event of either polarity in one window of the MCTS, over the
+    5x5 around a keypoint. An edge (a line of fresh events) has five in its window, a fresh lone
+    noise event one, and a noise event that only a long window still holds none in the shortest;
+    ``detector.min_event_support: 3`` keeps the edge's keypoint alone, with its score and descriptor."""
+    from aerovis_slam.keypoints import Keypoints
+    from aerovis_slam.slam.frontend import event_support, supported_keypoints
+
+    K = 4
+    surfaces = np.zeros((2 * K, 40, 60), np.float32)
+    surfaces[0, 5:16, 10] = 0.9        # OFF, shortest window: a vertical edge
+    surfaces[K + 0, 20, 30] = 0.8      # ON, shortest window: a fresh lone event
+    surfaces[3, 20, 45] = 0.4          # OFF, longest window only: a noise event 0.6 of that window ago
+    surfaces[K + 3, 20, 30] = 0.95     # (the fresh event is in every window)
+    xy = np.array([[10.0, 10.2], [30.0, 20.0], [45.0, 20.0], [58.6, 39.4]])
+    assert event_support(surfaces, 0, xy).tolist() == [5, 1, 0, 0]
+    assert event_support(surfaces, 3, xy).tolist() == [0, 1, 1, 0]
+    with pytest.raises(ValueError, match="support window 4"):
+        event_support(surfaces, 4, xy)
+    kp = Keypoints(xy.astype(np.float32), np.array([0.1, 0.2, 0.3, 0.4], np.float32), np.eye(4, dtype=np.float32))
+    kept = supported_keypoints(kp, surfaces, 0, 3)
+    assert kept.xy.tolist() == [[10.0, np.float32(10.2)]] and kept.scores.tolist() == [np.float32(0.1)]
+    assert kept.descriptors.tolist() == [[1.0, 0.0, 0.0, 0.0]]
+    # the settings are checked: in the file, and the window against the detector's MCTS before a run
+    f = tmp_path / "s.yaml"
+    f.write_text("detector:\n  min_event_support: 26\n")
+    with pytest.raises(DataError, match="detector.min_event_support"):
+        load_config(f)
+    cfg = load_config("accurate")
+    cfg.detector.min_event_support, cfg.detector.support_window = 3, 4  # MCTS_Ne has windows 0..3
+    with pytest.raises(DataError, match="support_window 4"):
+        run_slam(tiny_preset / "tiny_handheld.h5", StereoClassicalDetector("orb", 100), cfg, progress=False)
+
+
 def _texture(shape=(120, 160), seed=0) -> np.ndarray:
     """A smooth random texture in [0, 1] (noise blurred over ~2 px, as a time surface's edges are)."""
     import cv2

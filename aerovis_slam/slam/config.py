@@ -92,6 +92,19 @@ class DetectorConfig:
             ``tau`` on the seven sequences. The measured effect on SLAM is in docs/slam.md: with
             the initialisation's bundle adjustment, 0.03 lowered the four-run sync means of
             SuperLitE on five bench sequences of seven and of ORB on six (on by default since).
+        min_event_support: a keypoint is kept only where at least this many of the (2r+1)^2 = 25
+            pixels around it had an event within the MCTS window ``support_window``
+            (:func:`~aerovis_slam.slam.frontend.event_support`; 0: every keypoint). Keypoints on
+            lone noise events, which the long windows of a sparse scene hold in place for a second
+            or more, then never reach the map. Off by default: 3 pixels in window 1 rescued the
+            bench preset's noisiest sequence (seed 1 slider_wall, 70 % noise events: 22.9 -> 5.0 %
+            ATE) and seed 1 shake_rapid (6.5 -> 0.9 %), but broke seed 2 spin_hdr_window (2.9 ->
+            18.9 %: fewer keypoints in its dark half before the initialisation) and left seed 0's
+            four-run means within their spread (docs/slam.md, "Keypoints on noise"); for a sparse,
+            noisy recording try ``min_event_support: 3, support_window: 1``.
+        support_window: that window's index ``k`` (0: the shortest, 0.03 events per pixel for the
+            default MCTS_Ne, which in a busy scene lights too few pixels of a real edge: window 0
+            doubled handheld_loop's ATE; 1: 0.1 events per pixel; for MCTS_dt's windows 2 = 10 ms).
     """
 
     top_k: int | None = 300
@@ -102,6 +115,8 @@ class DetectorConfig:
     oracle_noise_px: float | None = None
     measure_keypoint_errors: bool = False
     observation_lag_events_per_px: float = 0.03
+    min_event_support: int = 0
+    support_window: int = 0
 
 
 @dataclass
@@ -401,6 +416,11 @@ def _validate(cfg: SlamConfig, path) -> None:
                               f"got {cfg.init.min_position_inliers}")
     if cfg.detector.keypoint_noise_px < 0:
         raise DataError(path, f"detector.keypoint_noise_px must be >= 0, got {cfg.detector.keypoint_noise_px}")
+    if not 0 <= cfg.detector.min_event_support <= 25:
+        raise DataError(path, f"detector.min_event_support must be in [0, 25] pixels (of the 5x5 around a keypoint), "
+                              f"got {cfg.detector.min_event_support}")
+    if cfg.detector.support_window < 0:
+        raise DataError(path, f"detector.support_window must be a window index >= 0, got {cfg.detector.support_window}")
     if not 0.0 <= cfg.detector.observation_lag_events_per_px <= 10.0:
         raise DataError(path, f"detector.observation_lag_events_per_px must be in [0, 10] events per pixel, "
                               f"got {cfg.detector.observation_lag_events_per_px}")

@@ -48,7 +48,8 @@ from ..keypoints import Keypoints, match_keypoints
 from .backend import KeyframeSmoother, NavEstimate, Observations, track_frame
 from .cameras import StereoCameras
 from .config import SlamConfig
-from .frontend import KeyframeSelector, LandmarkMap, edge_shapes, match_to_map, spread_subset, structure_tensor
+from .frontend import (KeyframeSelector, LandmarkMap, edge_shapes, match_to_map, spread_subset, structure_tensor,
+                       supported_keypoints)
 from .imu import ImuStream, align_visual_inertial, gravity_rotation_from_acc, new_preintegration, preintegration_params
 from .ransac import bearings, pnp_ransac, position_given_rotation, relative_pose_ransac, reprojection_error, rotation_ransac
 from .refine import TrackRefiner
@@ -166,9 +167,13 @@ class StereoInertialOdometry:
         return self.t_initialized is not None
 
     def _detect(self, detector, batch: np.ndarray) -> tuple[Keypoints, Keypoints]:
-        k = self.cfg.detector.top_k
+        dc = self.cfg.detector
+        k = dc.top_k
         kps = detector.detect(batch, top_k=k) if k is not None else detector.detect(batch)
-        noise = self.cfg.detector.keypoint_noise_px
+        if dc.min_event_support > 0:  # keypoints on lone noise events out (see event_support)
+            kps = [supported_keypoints(kp, surfaces, dc.support_window, dc.min_event_support)
+                   for kp, surfaces in zip(kps[:2], batch[:2])]
+        noise = dc.keypoint_noise_px
         if noise > 0:
             h, w = batch.shape[-2:]
             kps = [perturb_keypoints(kp, self._keypoint_noise, noise, w, h) for kp in kps[:2]]

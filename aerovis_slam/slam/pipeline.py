@@ -159,6 +159,10 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
     mode = mode or config.mode
     if mode not in MODES:
         raise DataError(None, f"mode must be one of {MODES}, got {mode!r}")
+    windows = len(getattr(detector, "mcts_params", ()))
+    if config.detector.min_event_support > 0 and not config.detector.support_window < windows:
+        raise DataError(None, f"detector.support_window {config.detector.support_window}: the detector's MCTS has "
+                              f"{windows} windows (0..{windows - 1})")
     calib, imu, ranges, shifts = _open_inputs(path)
     cams = StereoCameras.from_rig(calib, max_width=config.input.max_width, max_height=config.input.max_height,
                                   size_multiple=int(getattr(detector, "size_multiple", 1)), path=path)
