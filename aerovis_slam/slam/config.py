@@ -97,11 +97,11 @@ class DetectorConfig:
             (:func:`~aerovis_slam.slam.frontend.event_support`; 0: every keypoint). Keypoints on
             lone noise events, which the long windows of a sparse scene hold in place for a second
             or more, then never reach the map. Off by default: 3 pixels in window 1 rescued the
-            bench preset's noisiest sequence (seed 1 slider_wall, two thirds of its events noise: 22.9 -> 5.0 %
-            ATE) and seed 1 shake_rapid (6.5 -> 0.9 %), but broke seed 2 spin_hdr_window (2.9 ->
-            18.9 %: fewer keypoints in its dark half before the initialisation) and left seed 0's
-            four-run means within their spread (docs/slam.md, "Keypoints on noise"); for a sparse,
-            noisy recording try ``min_event_support: 3, support_window: 1``.
+            bench preset's noisiest sequence (seed 1 slider_wall, two thirds of its events noise:
+            22.9 -> 5.0 % ATE) and seed 1 shake_rapid (6.5 -> 0.9 %), but broke seed 2
+            spin_hdr_window (2.9 -> 18.9 %; its first visual-inertial alignment fit |g| = 27.7
+            m/s²) and left seed 0's four-run means within their spread (docs/slam.md, "Keypoints
+            on noise"); for a sparse, noisy recording try ``min_event_support: 3, support_window: 1``.
         support_window: that window's index ``k`` (0: the shortest, 0.03 events per pixel for the
             default MCTS_Ne, which in a busy scene lights too few pixels of a real edge: window 0
             doubled handheld_loop's ATE; 1: 0.1 events per pixel; for MCTS_dt's windows 2 = 10 ms).

@@ -227,9 +227,10 @@ def event_support(surfaces: np.ndarray, window: int, xy: np.ndarray, radius: int
     every noise event stays a lit dot at a fixed image position for that long, and detectors (learned
     and classical alike) put keypoints on the dots. Such keypoints match from frame to frame without
     moving, so the frontend sees a camera at rest while it travels (bench preset seed 1, slider_wall:
-    two thirds of the events noise (0.2 Hz of leak and shot noise per pixel), the estimate moved 0.03 m while the camera moved 0.5 m). Structure that
-    is really there fires along its edges within the shortest window; a noise dot is one pixel, and
-    after the shortest window none. Written with OpenCV's box filter (no library counts this).
+    two thirds of the events are noise, 0.2 Hz of leak and shot noise per pixel; the estimate moved
+    0.03 m while the camera moved 0.5 m). Structure that is really there fires along its edges
+    within a short window; a noise dot is one pixel, and once older than the window none. Written
+    with OpenCV's box filter (no library counts this).
 
     Args:
         surfaces: (C, H, W) one camera's MCTS, polarity-major (``channel = p * K + k``, K = C / 2).
