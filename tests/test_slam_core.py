@@ -919,6 +919,19 @@ def test_event_support_counts_the_window_and_drops_lone_events(tmp_path, tiny_pr
         run_slam(tiny_preset / "tiny_handheld.h5", StereoClassicalDetector("orb", 100), cfg, progress=False)
 
 
+def test_vision_velocity_needs_a_time_baseline():
+    """Before the initialisation the velocity comes from tracked positions. Two frames 1 µs apart (the
+    observation lag clamps a frame's time to just after the previous one) carry no velocity: 2 cm of
+    position noise over 1 µs would be 20 km/s. Over 20 ms the same 2 cm are 1 m/s, averaged half and
+    half with the previous estimate."""
+    from aerovis_slam.slam.odometry import vision_velocity
+
+    v_old = np.array([0.4, -0.2, 0.0])
+    p0, p1 = np.array([1.0, 2.0, 3.0]), np.array([1.02, 2.0, 3.0])
+    assert vision_velocity(p1, p0, v_old, 1e-6, 0.005).tolist() == v_old.tolist()
+    np.testing.assert_allclose(vision_velocity(p1, p0, v_old, 0.02, 0.005), [0.5 * 1.0 + 0.2, -0.1, 0.0], atol=1e-12)
+
+
 def _texture(shape=(120, 160), seed=0) -> np.ndarray:
     """A smooth random texture in [0, 1] (noise blurred over ~2 px, as a time surface's edges are)."""
     import cv2
