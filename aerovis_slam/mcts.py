@@ -207,7 +207,8 @@ class TimestampBuffer:
 
     Attributes:
         ts: (2, H, W) int64 newest timestamp per polarity and pixel (:data:`NO_EVENT` if none).
-        count: number of events accepted so far. ``last_t``: newest accepted timestamp (µs).
+        count: number of events accepted so far. ``last_t``: newest accepted timestamp (µs);
+            ``first_t``: the first accepted one (µs).
         dropped_rate_cap: events dropped by the rate cap.
 
     Example:
@@ -246,6 +247,7 @@ class TimestampBuffer:
         self.ring.fill(NO_EVENT)
         self.count = 0
         self.last_t = int(NO_EVENT)
+        self.first_t = int(NO_EVENT)
         self._ring_pos = 0
         self.dropped_rate_cap = 0
         self._budget = None
@@ -267,6 +269,8 @@ class TimestampBuffer:
         accepted, self._ring_pos, last_t, err = _ingest_kernel(
             t, x, y, p, self._lut, self.pixel_map.sensor_width, self.pixel_map.sensor_height,
             self.ts.reshape(-1), self.plane, self.ring, self._ring_pos, np.int64(self.last_t))
+        if self.count == 0 and accepted:
+            self.first_t = int(t[0])
         self.count += int(accepted)
         self.last_t = int(last_t)
         if err:
@@ -341,6 +345,21 @@ class TimestampBuffer:
         inv_dt = (1.0 / windows).astype(np.float32)
         _surfaces_kernel(self.ts.reshape(-1), self.plane, np.int64(tau), inv_dt, out.reshape(2 * K, self.plane))
         return out
+
+    def is_complete(self, tau: int, kind: str, params: Sequence[float]) -> bool:
+        """Whether the MCTS at ``tau`` (µs) is complete: the longest MCTS_Ne window holds its
+        ``max(N_k)`` events (``kind`` 'ne', ``params`` in events per pixel of this buffer), or the
+        longest MCTS_dt window (ms) has passed since the first event (``kind`` 'dt'). Before that the
+        long channels show only the events since the start, a surface the detectors never saw in
+        training (:func:`aerovis_train.eval.pose.mcts_warm_up_us` is the same rule on a stored sequence).
+        """
+        if self.count == 0:
+            return False
+        if kind == "ne":
+            return self.count >= int(events_per_window(params, self.width, self.height).max())
+        if kind == "dt":
+            return int(tau) - self.first_t >= max(float(w) for w in params) * 1000.0
+        raise ValueError(f"MCTS kind must be 'ne' or 'dt', got {kind!r}")
 
     def mcts_ne(self, tau: int | None = None, events_per_px: Sequence[float] = MCTS_NE_EVENTS_PER_PX, out=None) -> np.ndarray:
         """MCTS with constant event count (paper eq. 3): float32 (2K, H, W), K = len(events_per_px).

@@ -44,6 +44,16 @@ class InputConfig:
         min_new_events_per_px: a frame with fewer new events (both cameras, per pixel of one camera)
             than this since the previous frame is propagated with the IMU alone (static or dark
             stretch: the time surfaces have not changed).
+        warm_up: the first frame waits until both cameras' MCTS are complete (the longest MCTS_Ne
+            window holds its events, or the longest MCTS_dt window has passed since the first event;
+            ``TimestampBuffer.is_complete``); frames before it are neither processed nor output.
+            Before it the long channels show only the events since the start, and landmarks
+            triangulated on such surfaces disagree with later ones by centimetres (a flying start
+            of the bench preset's seed 2: 7 cm between frames 60 ms apart, which tilted the
+            initialisation's gravity by 21 deg; docs/slam.md, "Warm-up").
+        max_warm_up_s: the longest wait for it (s after the first frame slot; None: no limit): a
+            slow or dark scene can take seconds to fill its longest window (3 s in a textureless
+            room), and then starts on incomplete surfaces rather than lose its first seconds.
         chunk_events: events per read from the file (the prefetch thread's unit).
         prefetch_chunks: chunks read ahead per camera (bounded memory).
     """
@@ -52,6 +62,8 @@ class InputConfig:
     max_height: int = 240
     rate_cap_mev_s: float | None = 35.0
     min_new_events_per_px: float = 0.005
+    warm_up: bool = True
+    max_warm_up_s: float | None = 0.5
     chunk_events: int = 200_000
     prefetch_chunks: int = 4
 
@@ -407,6 +419,8 @@ def _validate(cfg: SlamConfig, path) -> None:
             raise DataError(path, f"refinement.{key} must be positive, got {getattr(rc, key)}")
     if cfg.backend.window_keyframes < 2:
         raise DataError(path, f"backend.window_keyframes must be at least 2, got {cfg.backend.window_keyframes}")
+    if cfg.input.max_warm_up_s is not None and not cfg.input.max_warm_up_s >= 0:
+        raise DataError(path, f"input.max_warm_up_s must be >= 0 s or null (no limit), got {cfg.input.max_warm_up_s}")
     if cfg.input.max_width < 16 or cfg.input.max_height < 16:
         raise DataError(path, f"input.max_width/max_height must be at least 16, got {cfg.input.max_width}x{cfg.input.max_height}")
     from ..classical import DETECTORS

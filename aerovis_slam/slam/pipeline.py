@@ -246,6 +246,16 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
         bar.update(max(0.0, (tau - shown) * 1e-6))
         shown = max(shown, tau)
 
+    warm_until = t_begin + (int(config.input.max_warm_up_s * 1e6) if config.input.max_warm_up_s is not None else 2**62)
+    t_warm = [None if config.input.warm_up else t_begin]  # first processed frame slot (µs)
+
+    def warm(buffers, tau: int) -> bool:
+        """input.warm_up: whether frames are processed from tau on (both cameras' MCTS complete)."""
+        if t_warm[0] is None and (tau >= warm_until or all(b.is_complete(tau, detector.mcts_kind, detector.mcts_params)
+                                                             for b in buffers)):
+            t_warm[0] = int(tau)
+        return t_warm[0] is not None
+
     counted = [0]  # events in the buffers at the previous frame
     last_obs = [-(2**62)]  # time of the previous frame's estimate
     obs_lag: list[int] = []  # tau - time of the estimate, per frame (µs)
@@ -283,6 +293,9 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
                 tp = time.perf_counter()
                 feeder.advance_to(tau)
                 pre_ms = (time.perf_counter() - tp) * 1e3
+                if not warm(feeder.buffers, tau):
+                    tau += frame_us
+                    continue
                 res, t_obs, mcts_ms, proc_ms = iterate(tau, pre_ms)
                 finish = max(finish, float(tau)) + proc_ms * 1e3  # live frame queue: wait for the previous frame
                 record(res, t_obs, finish - tau, pre_ms, mcts_ms, proc_ms)
@@ -302,6 +315,10 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
                 tp = time.perf_counter()
                 feeder.advance_to(tau)
                 pre_ms = (time.perf_counter() - tp) * 1e3
+                if not warm(feeder.buffers, tau):  # the frontend waits for the next IMU-covered slot
+                    last_tau = tau
+                    clock = max(clock, float(tau)) + 1.0
+                    continue
                 res, t_obs, mcts_ms, proc_ms = iterate(tau, pre_ms)
                 clock += proc_ms * 1e3
                 record(res, t_obs, clock - tau, pre_ms, mcts_ms, proc_ms)
@@ -316,7 +333,7 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
                 if now > t_end or (live.done.is_set() and last_tau is not None and last_tau >= feeder.ingested_until):
                     break
                 buffers, tau = feeder.snapshot()
-                if tau < t_begin or (last_tau is not None and tau < last_tau + min_dt_us):
+                if tau < t_begin or (last_tau is not None and tau < last_tau + min_dt_us) or not warm(buffers, tau):
                     time.sleep(0.0005)
                     continue
                 res, t_obs, mcts_ms, proc_ms = iterate(tau, 0.0, buffers)
@@ -357,6 +374,7 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
         "t_initialized_us": odo.t_initialized,  # outputs before it are vision-only (gyro rotation, no gravity yet)
         "resolution": [cams.left.width, cams.left.height],
         "t_begin_us": int(t_begin), "t_end_us": int(t_end),
+        "t_first_frame_us": t_warm[0],  # input.warm_up: the first frame processed (t_begin without it)
         # detector.observation_lag_events_per_px: how far before their frame slot outputs were placed
         "observation_lag_ms": ({"median": float(np.median(obs_lag)) / 1000, "max": float(np.max(obs_lag)) / 1000}
                                if obs_lag and config.detector.observation_lag_events_per_px > 0 else None),
