@@ -59,6 +59,21 @@ def events_per_window(events_per_px: Sequence[float], width: int, height: int) -
     return np.array([math.ceil(round(r * width * height, 6)) for r in events_per_px], dtype=np.int64)
 
 
+def warm_up_requirement(kind: str, params: Sequence[float], width: int, height: int) -> tuple[int, float]:
+    """What an MCTS needs to be complete: (events since the start, µs since the first event).
+
+    MCTS_Ne (``kind`` 'ne', ``params`` in events per pixel): the longest window reaches back
+    ``max(N_k)`` events before the newest, so ``max(N_k) + 1`` events. MCTS_dt ('dt', ms): one
+    event and the longest window since it. The runtime's warm-up
+    (:meth:`TimestampBuffer.is_complete`) and ``aerovis-eval pose``'s first frame use this rule.
+    """
+    if kind == "ne":
+        return int(events_per_window(params, width, height).max()) + 1, 0.0
+    if kind == "dt":
+        return 1, max(float(w) for w in params) * 1000.0
+    raise ValueError(f"MCTS kind must be 'ne' or 'dt', got {kind!r}")
+
+
 # --------------------------------------------------------------------------------------------
 # numba kernels
 # --------------------------------------------------------------------------------------------
@@ -347,19 +362,11 @@ class TimestampBuffer:
         return out
 
     def is_complete(self, tau: int, kind: str, params: Sequence[float]) -> bool:
-        """Whether the MCTS at ``tau`` (µs) is complete: the longest MCTS_Ne window holds its
-        ``max(N_k)`` events (``kind`` 'ne', ``params`` in events per pixel of this buffer), or the
-        longest MCTS_dt window (ms) has passed since the first event (``kind`` 'dt'). Before that the
-        long channels show only the events since the start, a surface the detectors never saw in
-        training (:func:`aerovis_train.eval.pose.mcts_warm_up_us` is the same rule on a stored sequence).
-        """
-        if self.count == 0:
-            return False
-        if kind == "ne":
-            return self.count >= int(events_per_window(params, self.width, self.height).max())
-        if kind == "dt":
-            return int(tau) - self.first_t >= max(float(w) for w in params) * 1000.0
-        raise ValueError(f"MCTS kind must be 'ne' or 'dt', got {kind!r}")
+        """Whether the MCTS at ``tau`` (µs) is complete (:func:`warm_up_requirement`): before that
+        the long channels show only the events since the start, a surface the detectors never saw
+        in training."""
+        events, span_us = warm_up_requirement(kind, params, self.width, self.height)
+        return self.count >= events and int(tau) - self.first_t >= span_us
 
     def mcts_ne(self, tau: int | None = None, events_per_px: Sequence[float] = MCTS_NE_EVENTS_PER_PX, out=None) -> np.ndarray:
         """MCTS with constant event count (paper eq. 3): float32 (2K, H, W), K = len(events_per_px).

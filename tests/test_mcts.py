@@ -79,13 +79,14 @@ def test_mcts_ne_window_before_enough_events_reaches_first_event():
 
 
 def test_surfaces_are_complete_once_the_longest_window_is_full():
-    """``is_complete``: MCTS_Ne needs max(N_k) events (here N = 0.5 x 4 x 3 = 6 for the longer
-    window), MCTS_dt the longest window (5 ms) since the first event; no events is never complete."""
+    """``is_complete``: the longest MCTS_Ne window reaches back N = 0.5 x 4 x 3 = 6 events before
+    the newest, so it needs 7; MCTS_dt the longest window (5 ms) since the first event; no events
+    is never complete."""
     buf = TimestampBuffer(4, 3, events_per_px=(0.25, 0.5))
     assert not buf.is_complete(0, "ne", (0.25, 0.5)) and not buf.is_complete(0, "dt", (5.0,))
-    buf.ingest(ev([(1000 + 10 * i, i % 4, 0, 1) for i in range(5)]))
+    buf.ingest(ev([(1000 + 10 * i, i % 4, 0, 1) for i in range(6)]))
     assert buf.first_t == 1000 and not buf.is_complete(2000, "ne", (0.25, 0.5))
-    assert buf.is_complete(2000, "ne", (0.25,))  # N = 3 is full
+    assert buf.is_complete(2000, "ne", (0.25,))  # N = 3: 4 events suffice
     buf.ingest(ev([(1100, 0, 1, 0)]))
     assert buf.is_complete(2000, "ne", (0.25, 0.5)) and buf.first_t == 1000
     assert not buf.is_complete(5999, "dt", (1.0, 5.0)) and buf.is_complete(6000, "dt", (1.0, 5.0))

@@ -709,9 +709,9 @@ def test_observation_lag_moves_frames_to_the_time_their_keypoints_show(small_fli
 
 def test_warm_up_starts_when_both_time_surfaces_are_complete(small_flight):
     """``input.warm_up``: the first frame processed (and output) is the first 50 Hz slot at which
-    both cameras hold the longest MCTS_Ne window's events (N = 1.0 x 212 x 120 = 25,440, the N-th
-    event of each camera read from the file); ``max_warm_up_s`` caps the wait, the first slot then
-    being t_begin plus the cap."""
+    both cameras' longest MCTS_Ne window is full (it reaches N = 1.0 x 212 x 120 = 25,440 events
+    back from the newest: the (N+1)-th event of each camera, read from the file); ``max_warm_up_s``
+    caps the wait, the first slot then being t_begin plus the cap."""
     from aerovis_slam.mcts import events_per_window
 
     det = StereoClassicalDetector("orb", 300)
@@ -722,7 +722,7 @@ def test_warm_up_starts_when_both_time_surfaces_are_complete(small_flight):
     assert res.status == "ok" and res.complete and res.info["initialized"]
     with Sequence(small_flight) as s:
         n = int(events_per_window(det.mcts_params, *s.sensor_size("cam0")).max())
-        t_full = max(int(s.events_by_index(c, n - 1, n).t[0]) for c in ("cam0", "cam1"))
+        t_full = max(int(s.events_by_index(c, n, n + 1).t[0]) for c in ("cam0", "cam1"))
     t_begin = res.info["t_begin_us"]
     expected = t_begin + 20_000 * int(np.ceil((t_full - t_begin) / 20_000))
     assert expected > t_begin + 20_000  # the test means something: the warm-up is longer than a frame

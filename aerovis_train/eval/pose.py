@@ -49,7 +49,7 @@ from aerovis_slam.geometry import interpolate_poses as _interpolate_pose7
 from aerovis_slam.errors import DataError
 from aerovis_slam.io.sequence import Sequence, camera_key
 from aerovis_slam.keypoints import Keypoints, match_keypoints
-from aerovis_slam.mcts import MCTS_DT_WINDOWS_MS, MCTS_NE_EVENTS_PER_PX, TimestampBuffer, events_per_window
+from aerovis_slam.mcts import MCTS_DT_WINDOWS_MS, MCTS_NE_EVENTS_PER_PX, TimestampBuffer, warm_up_requirement
 
 AUC_THRESHOLDS_DEG: tuple[float, ...] = (5.0, 10.0, 20.0)
 FAILURE_DEG = 180.0
@@ -408,11 +408,9 @@ def mcts_warm_up_us(seq: Sequence, cam: str, mcts_kind: str, params) -> int:
     """First time (µs, camera clock) at which ``cam``'s MCTS is complete: the event that fills the
     longest MCTS_Ne window (the last event if there are fewer), or the first event plus the longest
     MCTS_dt window. ``cam`` must hold events."""
-    if mcts_kind == "ne":
-        W, H = seq.sensor_size(cam)
-        n_warm = min(int(events_per_window(params, W, H).max()), seq.num_events(cam) - 1)
-        return int(seq.events_by_index(cam, n_warm, n_warm + 1).t[0])
-    return seq.time_range(cam)[0] + int(round(max(params) * 1000))
+    events, span_us = warm_up_requirement(mcts_kind, params, *seq.sensor_size(cam))
+    i = min(events, seq.num_events(cam)) - 1  # the event that completes it
+    return max(int(seq.events_by_index(cam, i, i + 1).t[0]), seq.time_range(cam)[0] + int(round(span_us)))
 
 
 def _truncate(kp: Keypoints, top_k: int) -> Keypoints:
