@@ -757,6 +757,10 @@ def test_cli_run_end_to_end_on_tiny_matches_eval(tmp_path, capsys):
     m = json.loads((out / "metrics.json").read_text())
     assert line["status"] == m["status"] == "ok" and m["complete"] is True and m["mode"] == "sync"
     assert m["poses"] == len(read_tum(out / "traj.txt")) > 10
+    # the first output is the warm-up's first frame (the observation lag may place it up to 50 ms
+    # earlier; 1 µs for the file's rounding)
+    t_first = m["pipeline_info"]["t_first_frame_us"]
+    assert line["t_first_frame_us"] == t_first and -1 <= t_first - read_tum(out / "traj.txt").t[0] <= 50_000
     assert m["ate_rmse_m"] is not None and m["stages"]["detector"]["count"] > 0 and m["loop"]["keyframes"] >= 0
     assert main(["eval", str(seq), str(out / "traj.txt"), "--interpolate"]) == 0
     r = json.loads(capsys.readouterr().out)

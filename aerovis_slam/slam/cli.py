@@ -198,6 +198,8 @@ def cmd_run(args) -> int:
     summary["trajectory_file"] = metrics.get("trajectory_file")
     summary["ate_pct_final"] = (metrics.get("final") or {}).get("ate_pct")
     summary["final_trajectory_file"] = metrics.get("final_trajectory_file")
+    # input.warm_up: the outputs start at the first frame with complete time surfaces
+    summary["t_first_frame_us"] = (metrics.get("pipeline_info") or {}).get("t_first_frame_us")
     for key in ("oracle", "keypoint_errors"):
         if (metrics.get("pipeline_info") or {}).get(key):
             summary[key] = metrics["pipeline_info"][key]
