@@ -189,6 +189,14 @@ def structure_tensor(img: np.ndarray, window: int = 7) -> np.ndarray:
     return np.stack([cv2.boxFilter(gx * gx, -1, k), cv2.boxFilter(gx * gy, -1, k), cv2.boxFilter(gy * gy, -1, k)])
 
 
+def nearest_pixels(xy: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Column and row indices (N,) int64 of the pixels nearest to ``xy`` (N, 2), clamped to an
+    image of ``shape`` (H, W): where per-pixel maps are read at keypoints."""
+    H, W = shape[:2]
+    return (np.clip(np.rint(xy[:, 0]).astype(np.int64), 0, W - 1),
+            np.clip(np.rint(xy[:, 1]).astype(np.int64), 0, H - 1))
+
+
 def edge_shapes(tensor: np.ndarray, xy: np.ndarray, *, max_ratio: float = 100.0) -> np.ndarray:
     """Covariance shapes (N, 2, 2) of keypoint positions from the local structure tensor.
 
@@ -208,9 +216,7 @@ def edge_shapes(tensor: np.ndarray, xy: np.ndarray, *, max_ratio: float = 100.0)
     if n == 0:
         return np.zeros((0, 2, 2))
     sxx, sxy, syy = tensor
-    H, W = sxx.shape
-    u = np.clip(np.rint(xy[:, 0]).astype(np.int64), 0, W - 1)
-    v = np.clip(np.rint(xy[:, 1]).astype(np.int64), 0, H - 1)
+    u, v = nearest_pixels(xy, sxx.shape)
     S = np.stack([np.stack([sxx[v, u], sxy[v, u]], -1), np.stack([sxy[v, u], syy[v, u]], -1)], -2).astype(np.float64)
     lam, vec = np.linalg.eigh(S)  # ascending: lam[:, 0] small (along the edge), lam[:, 1] large
     ratio = np.clip(lam[:, 1] / np.maximum(lam[:, 0], 1e-12 * np.maximum(lam[:, 1], 1e-30)), 1.0, max_ratio)
@@ -245,9 +251,7 @@ def event_support(surfaces: np.ndarray, window: int, xy: np.ndarray, radius: int
     lit = ((surfaces[window] > 0) | (surfaces[K + window] > 0)).astype(np.float32)
     side = 2 * int(radius) + 1
     count = cv2.boxFilter(lit, -1, (side, side), normalize=False, borderType=cv2.BORDER_CONSTANT)
-    H, W = lit.shape
-    u = np.clip(np.rint(xy[:, 0]).astype(np.int64), 0, W - 1)
-    v = np.clip(np.rint(xy[:, 1]).astype(np.int64), 0, H - 1)
+    u, v = nearest_pixels(xy, lit.shape)
     return np.rint(count[v, u]).astype(np.int64)
 
 
