@@ -522,6 +522,22 @@ def _fake_runner(delta: float = 0.01, complete: bool = True, status: str = "ok",
     return run
 
 
+def test_pose_rate_counts_the_data_after_the_warm_up():
+    """``pose_rate_hz`` is per second of data from the warm-up's first frame on (no pose is due
+    before it); ``real_time_factor`` keeps the whole replayed span, whose events were all ingested."""
+    from aerovis_slam.slam.report import compute_metrics
+    t = 500_000 + np.arange(100) * 20_000  # 100 poses at 50 Hz from 0.5 s to 2.5 s
+    result = types.SimpleNamespace(t_us=t, pose7=helix(t).pose, latency_ms=np.zeros(100), wall_s=5.0,
+                                   sequence_duration_s=2.5, stage_ms={}, loop_closures=0, tracking_losses=0,
+                                   warnings=[], status="ok", complete=True,
+                                   info={"t_begin_us": 0, "t_first_frame_us": 500_000})
+    m, _, _ = compute_metrics(result, None)
+    assert m["pose_rate_hz"] == pytest.approx(100 / 2.0)
+    assert m["real_time_factor"] == pytest.approx(5.0 / 2.5) and m["rate_hz"] == pytest.approx(100 / 5.0)
+    result.info = {}  # no warm-up information (e.g. a result from elsewhere): the whole span
+    assert compute_metrics(result, None)[0]["pose_rate_hz"] == pytest.approx(100 / 2.5)
+
+
 @pytest.fixture()
 def empty_config(tmp_path):
     p = tmp_path / "defaults.yaml"
