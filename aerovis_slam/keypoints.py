@@ -109,8 +109,9 @@ def refine_subpixel(scores: np.ndarray, xy: np.ndarray, radius: int = 1) -> np.n
     x0 = np.rint(xy[:, 0]).astype(np.int64)
     y0 = np.rint(xy[:, 1]).astype(np.int64)
     offs = np.arange(-radius, radius + 1)
-    # windows that leave the image are clipped to the border pixels, which pulls a border peak slightly
-    # inwards at worst (keypoints within `border` px of the edge are dropped anyway)
+    # windows that leave the image are clipped to the border pixels, which counts those again and
+    # pushes a peak at the border further outwards (keypoints within `border` px of the edge, the
+    # bundle's 4 px, are dropped before this, so it does not arise there)
     rows = np.clip(y0[:, None] + offs[None], 0, H - 1)
     cols = np.clip(x0[:, None] + offs[None], 0, W - 1)
     win = np.maximum(np.asarray(scores, np.float32)[rows[:, :, None], cols[:, None, :]], 0.0)  # (N, rows, cols)

@@ -23,7 +23,8 @@ from aerovis_slam.slam.config import SlamConfig, load_config
 from aerovis_slam.slam.detectors import StereoClassicalDetector
 from aerovis_slam.slam.frontend import project_landmarks
 from aerovis_slam.slam.odometry import StereoInertialOdometry
-from aerovis_slam.slam.imu import ImuStream, align_visual_inertial, new_preintegration, preintegration_params
+from aerovis_slam.slam.imu import (ImuStream, align_visual_inertial, gravity_from_velocity_change, new_preintegration,
+                                  preintegration_params)
 from aerovis_slam.slam.pipeline import run_slam
 from aerovis_slam.slam.ransac import (bearings, pnp_ransac, position_given_rotation, project_points, reprojection_error,
                                       rotation_error_deg, rotation_ransac)
@@ -140,6 +141,24 @@ def test_position_with_known_rotation_two_cameras():
     assert err.max() < 1e-6
 
 
+def test_position_given_rotation_measures_errors_in_pixels_of_each_axis():
+    """Non-square pixels (fx = 2 fy): the reported errors are pixel distances, x scaled by fx and y
+    by fy, and the fit weighs each axis by its own focal length. Three points seen from the origin
+    (identity rotation and extrinsic), the first observed exactly 1 px low: the least-squares
+    position trades that pixel among the three, and the reported error of every point must equal
+    its pixel distance recomputed at the returned position."""
+    K = np.array([[200.0, 0.0, 160.0], [0.0, 100.0, 120.0], [0.0, 0.0, 1.0]])
+    pts = np.array([[0.0, 0.0, 2.0], [0.5, 0.2, 3.0], [-0.4, 0.3, 2.5]])
+    xy = np.stack([K[0, 0] * pts[:, 0] / pts[:, 2] + K[0, 2], K[1, 1] * pts[:, 1] / pts[:, 2] + K[1, 2]], axis=1)
+    xy[0, 1] += 1.0
+    p, err = position_given_rotation(pts, xy, np.zeros(3, np.int64), [K], [np.eye(4)], np.eye(3), np.zeros(3),
+                                     huber_px=100.0)
+    pc = pts - p
+    proj = np.stack([K[0, 0] * pc[:, 0] / pc[:, 2] + K[0, 2], K[1, 1] * pc[:, 1] / pc[:, 2] + K[1, 2]], axis=1)
+    np.testing.assert_allclose(err, np.linalg.norm(proj - xy, axis=1), atol=1e-9)
+    assert 0.0 < err[0] < 1.0  # the 1 px offset is shared, not reported as 2 px (fx / fy times too large)
+
+
 # -- IMU -----------------------------------------------------------------------------------------
 def _tiny_sim(imu_noise: bool, rate: float = 1000.0) -> Simulator:
     return Simulator(SequenceSpec("imu", rig="tiny_stereo", trajectory="handheld", trajectory_seed=3, scene_seed=3,
@@ -232,6 +251,74 @@ def test_alignment_with_noisy_visual_positions_improves_with_the_window():
     assert tilt_long < 0.5 * tilt_default
     # white noise: the alignment's own covariance predicts its error (within 2x; 30 draws)
     assert 0.5 < cal_long < 2.0 and 0.5 < cal_default < 2.0
+
+
+def test_gravity_from_the_velocity_change_over_a_tracked_stretch():
+    """The initialisation's fallback: gravity = (v_b - v_a - sum R dv) / (t_b - t_a), the end
+    velocities fitted to the visual positions, over a handheld path whose accelerometer mean over
+    the first 0.2 s (the static-start assumption) is ~8 deg off gravity. Exact poses: the error is
+    the preintegration's discretisation and the cubic part of the motion within the +-0.15 s fits
+    (measured 0.07 deg; 0.2 deg bounds it), also with a gap in the tracking between the ends. With
+    1 cm of white position noise (pre-initialisation stereo tracking) each end velocity is off by
+    about 0.01 m / sqrt(sum dt²) = 0.03 m/s per axis, so over the 0.62 s between the ends gravity's
+    direction by about 0.4 deg per axis: the median over 30 draws stays under 1 deg and the
+    reported sigma predicts the error within 2x. Too short a stretch gives no estimate."""
+    sim = _tiny_sim(imu_noise=True)
+    traj = sim.trajectory
+    stream = ImuStream(sim.imu())
+    params = preintegration_params(sim.rig.imu)
+    t = np.arange(0.02, 0.98, 0.02)
+    t_us = (t * 1e6).astype(np.int64)
+    T = traj.pose_matrix(t)
+    T_vb = np.linalg.inv(T[0]) @ T  # the vision frame: the first body pose
+    up_true = T[0][:3, :3].T @ np.array([0.0, 0.0, 1.0])
+
+    def tilt(g):
+        return np.degrees(np.arccos(np.clip((-g / np.linalg.norm(g)) @ up_true, -1.0, 1.0)))
+
+    static = stream.mean_acc(int(t_us[0]), int(t_us[0]) + 200_000)
+    assert tilt(-static) > 5.0  # the case the fallback is for: the path accelerates at its start
+    tracked = np.ones(len(t), bool)
+    est = gravity_from_velocity_change(t_us, T_vb, tracked, stream, params)
+    assert est is not None and (est.t_start_us, est.t_end_us) == (180_000, 800_000)
+    assert tilt(est.gravity_vision) < 0.2 and abs(np.linalg.norm(est.gravity_vision) - 9.81) < 0.05
+    gap = tracked.copy()
+    gap[10:30] = False  # 0.22-0.60 s untracked: the fits become uneven, the rotations stay the gyro's
+    assert tilt(gravity_from_velocity_change(t_us, T_vb, gap, stream, params).gravity_vision) < 0.2
+    rng = np.random.default_rng(0)
+    errors, sigmas = [], []
+    for _ in range(30):
+        Tn = T_vb.copy()
+        Tn[1:, :3, 3] += rng.normal(0.0, 0.01, (len(t) - 1, 3))
+        e = gravity_from_velocity_change(t_us, Tn, tracked, stream, params)
+        errors.append(tilt(e.gravity_vision))
+        sigmas.append(e.tilt_sigma_deg)
+    assert np.median(errors) < 1.0
+    # the sigma is per axis of a 2-D direction error: RMS error = sqrt(2) sigma
+    assert 0.5 < np.sqrt(np.mean(np.square(errors))) / (np.sqrt(2) * np.mean(sigmas)) < 2.0
+    short = t < 0.6  # 0.18 s to 0.42 s between the ends: below min_span_s
+    assert gravity_from_velocity_change(t_us[short], T_vb[short], tracked[short], stream, params) is None
+
+
+def test_initialisation_fallback_takes_gravity_from_the_velocity_change():
+    """Without an accepted alignment by ``init.timeout_s`` the odometry initialises with the
+    velocity-change gravity of its pre-initialisation frames (vision frame turned 25 deg from the
+    world); with no tracked frames it falls back to the accelerometer's mean (static start)."""
+    sim = _tiny_sim(imu_noise=True)
+    traj = sim.trajectory
+    cfg = SlamConfig()
+    cams = StereoCameras.from_rig(sim.rig, max_width=424, max_height=240, size_multiple=1)
+    odo = StereoInertialOdometry(cams, ImuStream(sim.imu()), sim.rig.imu, cfg)
+    t = np.arange(0.02, 0.98, 0.02)
+    T = traj.pose_matrix(t)
+    odo.t_first = int(t[0] * 1e6)
+    odo.preinit_frames = [(int(round(ti * 1e6)), Ti, True) for ti, Ti in zip(t, np.linalg.inv(T[0]) @ T)]
+    R_wv, how = odo._fallback_gravity()
+    R_true = T[0][:3, :3]  # world <- vision (up to yaw)
+    assert "velocity change" in how and _tilt_deg(R_wv, R_true) < 0.2
+    odo.preinit_frames = [(f[0], f[1], False) for f in odo.preinit_frames]
+    R_acc, how = odo._fallback_gravity()
+    assert "static start" in how and _tilt_deg(R_acc, R_true) > 5.0
 
 
 # -- the estimator on exact data -------------------------------------------------------------------

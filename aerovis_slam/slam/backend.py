@@ -176,9 +176,10 @@ class KeyframeSmoother:
         """Start the window at keyframe ``kf_id`` with priors on its state.
 
         The pose prior is tight on position and yaw (the unobservable gauge of visual-inertial
-        odometry) and looser on roll and pitch (gravity makes them observable). gtsam's Pose3
-        tangent is (rotation, translation) in the body frame; roll/pitch/yaw are taken as rotation
-        about body axes here, which is exact for a level body and close for small tilts.
+        odometry) and looser on roll and pitch (gravity makes them observable). The sigmas are
+        about world axes (yaw about world z, roll and pitch about world x and y), turned into gtsam's
+        body-frame Pose3 tangent (rotation, translation) as ``R^T diag(...) R``, so they hold at any
+        attitude.
         ``obs`` / ``landmark_positions``: the keyframe's own landmark observations, as for
         :meth:`add_keyframe` (a window started from earlier keyframes, see the odometry's
         initialisation, keeps what its first keyframe saw).

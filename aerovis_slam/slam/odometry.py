@@ -50,7 +50,8 @@ from .cameras import StereoCameras
 from .config import SlamConfig
 from .frontend import (KeyframeSelector, LandmarkMap, edge_shapes, match_to_map, spread_subset, structure_tensor,
                        supported_keypoints)
-from .imu import ImuStream, align_visual_inertial, gravity_rotation_from_acc, new_preintegration, preintegration_params
+from .imu import (ImuStream, align_visual_inertial, gravity_from_velocity_change, gravity_rotation_from_acc, new_preintegration,
+                  preintegration_params, rotation_aligning)
 from .ransac import bearings, pnp_ransac, position_given_rotation, relative_pose_ransac, reprojection_error, rotation_ransac
 from .refine import TrackRefiner
 from .stereo import match_stereo, triangulate
@@ -65,7 +66,8 @@ def perturb_keypoints(kp: Keypoints, rng: np.random.Generator, noise_px: float, 
 
 
 def vision_velocity(p_new: np.ndarray, p_old: np.ndarray, v_old: np.ndarray, dt_s: float, min_dt_s: float) -> np.ndarray:
-    """Velocity before the initialisation (world, m/s) from two tracked positions ``dt_s`` apart,
+    """Velocity before the initialisation (m/s, in the positions' frame: the vision frame) from two
+    tracked positions ``dt_s`` apart,
     averaged half and half with the previous estimate ``v_old`` (only the next frame's prediction
     uses it).
 
@@ -157,6 +159,7 @@ class StereoInertialOdometry:
         self.state: NavEstimate | None = None           # current frame state (odometry frame)
         self.t_initialized: int | None = None           # tau (µs) at which gravity, velocity and biases became known
         self.init_frames: list[tuple[int, np.ndarray]] = []  # (t, T_V_B) tracked before initialisation
+        self.preinit_frames: list[tuple[int, np.ndarray, bool]] = []  # (t, T_V_B, tracked): every frame before it
         self.t_first: int | None = None
         self.kf_id = -1
         self.kf_t: int | None = None
@@ -425,6 +428,7 @@ class StereoInertialOdometry:
         self.state = state
         self.t_last = tau
         if not self.initialized:
+            self.preinit_frames.append((tau, state.T_world_body.copy(), bool(tracked)))
             if tracked:
                 self.init_frames.append((tau, state.T_world_body.copy()))
             elif self.frame > 0:
@@ -469,6 +473,7 @@ class StereoInertialOdometry:
         self.state = state
         self.t_last = tau
         if not self.initialized:
+            self.preinit_frames.append((tau, state.T_world_body.copy(), False))
             self.init_frames = []
             self._try_initialize(tau, None, None)
         self._poll_loop_closer()
@@ -753,12 +758,32 @@ class StereoInertialOdometry:
                         sigmas=(aligned.tilt_sigma_deg, aligned.velocity_sigma),
                         velocities={int(ti): vi for ti, vi in zip(t, aligned.velocities)})
         elif (tau - self.t_first) * 1e-6 >= ic.timeout_s:
-            acc = self.stream.mean_acc(self.t_first, self.t_first + 200_000)
-            R_wv = gravity_rotation_from_acc(acc)
+            R_wv, how = self._fallback_gravity()
             v_w = R_wv @ self.state.v_world if len(frames) >= 2 else np.zeros(3)
-            self.log.warn("init-static", f"t={tau} µs: too few tracked frames for the visual-inertial alignment within "
-                                         f"{ic.timeout_s} s; gravity from the accelerometer (assumes a static start)")
+            self.log.warn("init-static", f"t={tau} µs: no visual-inertial alignment accepted within {ic.timeout_s} s; "
+                                         f"gravity {how}")
             self._start(tau, R_wv, v_w, gtsam.imuBias.ConstantBias(), kpL, kpR, from_vision=False)
+
+    def _fallback_gravity(self) -> tuple[np.ndarray, str]:
+        """``R_world_vision`` (3, 3) for an initialisation without an accepted alignment, and how it was found.
+
+        First choice: the velocity change over all the frames tracked so far
+        (:func:`~aerovis_slam.slam.imu.gravity_from_velocity_change`), when its norm passes the
+        alignment's check (within 1 m/s² of 9.81). On handheld_office (bench preset, SuperLitE
+        sync) that is 0.9 deg off where the accelerometer's mean over the first 0.2 s, which
+        assumes a static start, is 19.9 deg off (the camera accelerates there). Otherwise that mean.
+        """
+        if len(self.preinit_frames) >= 6:
+            t = np.array([f[0] for f in self.preinit_frames], np.int64)
+            order = np.argsort(t, kind="stable")
+            est = gravity_from_velocity_change(t[order], np.stack([self.preinit_frames[i][1] for i in order]),
+                                               np.array([self.preinit_frames[i][2] for i in order]), self.stream, self.params)
+            if est is not None and abs(float(np.linalg.norm(est.gravity_vision)) - 9.81) < 1.0:
+                return (rotation_aligning(est.gravity_vision, np.array([0.0, 0.0, -1.0])),
+                        f"from the velocity change over the tracked frames {est.t_start_us}-{est.t_end_us} µs "
+                        f"(|g| = {np.linalg.norm(est.gravity_vision):.2f} m/s², tilt sigma {est.tilt_sigma_deg:.1f} deg)")
+        acc = self.stream.mean_acc(self.t_first, self.t_first + 200_000)
+        return gravity_rotation_from_acc(acc), "from the accelerometer (assumes a static start)"
 
     def _start(self, tau, R_wv, v_w, bias, kpL, kpR, *, from_vision: bool, sigmas=(0.0, 0.0),
                velocities: dict[int, np.ndarray] | None = None) -> None:
@@ -793,11 +818,14 @@ class StereoInertialOdometry:
             self.init_anchor = (self.kf_id, self.state.T_world_body.copy())
         self.kf_state = self.state
         self._remember_window()
-        self.pim = new_preintegration(self.params, bias)
+        # the keyframe's bias: after the initialisation's window that is the smoother's estimate, not
+        # the alignment's (track_frame integrates from the keyframe with its bias)
+        self.pim = new_preintegration(self.params, self.kf_state.bias)
         self.kf_t = tau
         self.kf_keypoints = kpL
         self.t_initialized = int(tau)
         self.init_frames = []
+        self.preinit_frames = []
         if self.loop_closer is not None:
             for kf, t_kf, T_vb, kp, pts_body, valid in self.preinit_kfs:
                 # their landmarks as triangulated then: refining them with the smoother's later

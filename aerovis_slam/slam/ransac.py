@@ -217,7 +217,9 @@ def position_given_rotation(points_world: np.ndarray, xy: np.ndarray, cam_index:
     A_all = np.stack(A_list)
     b_all = np.stack(b_list)
     m_all = np.stack(m_list)
-    f_all = np.array([Ks[int(c)][0, 0] for c in cam_index])
+    f_xy = np.array([[Ks[int(c)][0, 0], Ks[int(c)][1, 1]] for c in cam_index])  # (N, 2): fx, fy
+    # rows of [m]x p_c: the first is the y residual (times depth), the second the x residual
+    f_rows = f_xy[:, ::-1]
     S = np.zeros((n, 3, 3))  # cross-product matrices [m]x
     S[:, 0, 1], S[:, 0, 2] = -m_all[:, 2], m_all[:, 1]
     S[:, 1, 0], S[:, 1, 2] = m_all[:, 2], -m_all[:, 0]
@@ -229,16 +231,16 @@ def position_given_rotation(points_world: np.ndarray, xy: np.ndarray, cam_index:
         pc = np.einsum("nij,nj->ni", A_all, points_world - p) + b_all
         z = np.maximum(pc[:, 2], 1e-3)
         uv = pc[:, :2] / z[:, None]
-        err = np.linalg.norm((uv - m_all[:, :2]) * f_all[:, None], axis=1)
+        err = np.linalg.norm((uv - m_all[:, :2]) * f_xy, axis=1)
         w = np.where(err <= huber_px, 1.0, huber_px / np.maximum(err, 1e-12))
-        scale = np.sqrt(w) * f_all / z
+        scale = np.sqrt(w)[:, None] * f_rows / z[:, None]  # (N, 2): each row in pixels
         # the first two rows of [m]x are independent for m = (x, y, 1)
-        M = (SA[:, :2, :] * scale[:, None, None]).reshape(-1, 3)
-        y = (rhs[:, :2] * scale[:, None]).reshape(-1)
+        M = (SA[:, :2, :] * scale[:, :, None]).reshape(-1, 3)
+        y = (rhs[:, :2] * scale).reshape(-1)
         p, *_ = np.linalg.lstsq(M, y, rcond=None)
     pc = np.einsum("nij,nj->ni", A_all, points_world - p) + b_all
     z = pc[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
-        err = np.linalg.norm((pc[:, :2] / z[:, None] - m_all[:, :2]) * f_all[:, None], axis=1)
+        err = np.linalg.norm((pc[:, :2] / z[:, None] - m_all[:, :2]) * f_xy, axis=1)
     err[~(z > 0)] = np.inf
     return p, err
