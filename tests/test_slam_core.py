@@ -321,6 +321,31 @@ def test_initialisation_fallback_takes_gravity_from_the_velocity_change():
     assert "static start" in how and _tilt_deg(R_acc, R_true) > 5.0
 
 
+@pytest.mark.parametrize("span_s,starts", [(0.94, True), (0.6, False)])
+def test_velocity_change_initialisation(span_s, starts):
+    """``init.gravity: velocity_change``: once tracking spans ``velocity_change_s`` (0.8 s here) the
+    smoother starts with that gravity (exact poses: within 0.2 deg, as its unit test); before, it
+    waits."""
+    sim = _tiny_sim(imu_noise=True)
+    traj = sim.trajectory
+    cfg = SlamConfig()
+    cfg.init.gravity = "velocity_change"
+    cfg.init.velocity_change_s = 0.8
+    cams = StereoCameras.from_rig(sim.rig, max_width=424, max_height=240, size_multiple=1)
+    odo = StereoInertialOdometry(cams, ImuStream(sim.imu()), sim.rig.imu, cfg)
+    t = np.arange(0.02, 0.02 + span_s + 1e-9, 0.02)
+    T = traj.pose_matrix(t)
+    T_v = np.linalg.inv(T[0]) @ T
+    t_us = [int(round(ti * 1e6)) for ti in t]
+    odo.t_first = t_us[0]
+    odo.preinit_frames = [(ti, Ti, True) for ti, Ti in zip(t_us, T_v)]
+    odo.state = NavEstimate(T_v[-1].copy(), T[0][:3, :3].T @ traj.position(t[-1:], 1)[0], gtsam.imuBias.ConstantBias())
+    odo._try_initialize(t_us[-1], None, None)
+    assert odo.initialized is starts
+    if starts:
+        assert _tilt_deg(odo.state.T_world_body[:3, :3], T[-1][:3, :3]) < 0.2
+
+
 # -- the estimator on exact data -------------------------------------------------------------------
 def test_smoother_and_tracking_on_exact_observations():
     """Exact observations (0.5 px noise) of landmarks that start 5 cm off (as from stereo) and the
@@ -1009,6 +1034,10 @@ def test_configs_load_and_reject_unknown_keys(tmp_path):
     f.write_text("input:\n  max_warm_up_s: -0.1\n")
     with pytest.raises(DataError, match="input.max_warm_up_s"):
         load_config(f)
+    for bad, key in (("gravity: accelerometer", "init.gravity"), ("velocity_change_s: 0.5", "init.velocity_change_s")):
+        f.write_text(f"init:\n  {bad}\n")
+        with pytest.raises(DataError, match=key):
+            load_config(f)
     with pytest.raises(DataError, match="unknown SLAM config"):
         load_config("nonexistent")
 

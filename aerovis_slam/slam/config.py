@@ -283,8 +283,19 @@ class InitConfig:
         max_tilt_sigma_deg, max_velocity_sigma: an alignment is accepted only when its own
             least-squares uncertainty (:class:`~aerovis_slam.slam.imu.Alignment`) is below these;
             the smoother starts with priors no tighter than it.
-        timeout_s: without enough tracked frames by then, initialise from the accelerometer
-            alone (assumes a static start, with a warning).
+        timeout_s: without an accepted estimate by then (s after the first frame), initialise
+            anyway, with gravity from the velocity change over the frames tracked so far, or where
+            tracking does not cover that, from the accelerometer's mean over the first 0.2 s (a
+            static start), with a warning.
+        gravity: how gravity is found before the smoother starts. ``alignment``: the visual-inertial
+            alignment over ``window_s`` of tracking (:func:`~aerovis_slam.slam.imu.align_visual_inertial`),
+            accepted by its own sigmas. ``velocity_change``: once tracking spans ``velocity_change_s``,
+            the velocity change between its ends against the rotated specific force
+            (:func:`~aerovis_slam.slam.imu.gravity_from_velocity_change`, accepted when its norm is
+            within 1 m/s² of 9.81 and its sigma below ``max_tilt_sigma_deg``); the smoother starts
+            with the fallback's priors (10 deg on roll and pitch, 0.5 m/s) and the initialisation's
+            window re-estimates velocities and gravity.
+        velocity_change_s: tracked span before a ``velocity_change`` initialisation.
         min_position_inliers: before initialisation a frame counts as tracked with this many
             3D-2D inliers. Its rotation comes from the gyroscope, so only the position (3 unknowns, 2
             equations per observation) is fitted, and fewer inliers suffice than for the full 6-DoF
@@ -303,6 +314,8 @@ class InitConfig:
     window_s: float = 0.3
     min_frames: int = 8
     timeout_s: float = 1.5
+    gravity: str = "alignment"
+    velocity_change_s: float = 1.0
     max_tilt_sigma_deg: float = 6.0
     max_velocity_sigma: float = 0.3
     min_position_inliers: int = 6
@@ -425,6 +438,11 @@ def _validate(cfg: SlamConfig, path) -> None:
         raise DataError(path, f"input.max_width/max_height must be at least 16, got {cfg.input.max_width}x{cfg.input.max_height}")
     from ..classical import DETECTORS
 
+    if cfg.init.gravity not in ("alignment", "velocity_change"):
+        raise DataError(path, f"init.gravity must be 'alignment' or 'velocity_change', got {cfg.init.gravity!r}")
+    if not cfg.init.velocity_change_s >= 0.8:
+        raise DataError(path, f"init.velocity_change_s must be at least 0.8 s (two 0.3 s velocity fits 0.5 s apart), "
+                              f"got {cfg.init.velocity_change_s}")
     if cfg.init.min_position_inliers < 3:
         raise DataError(path, f"init.min_position_inliers must be at least 3 (a position fit with outlier checks), "
                               f"got {cfg.init.min_position_inliers}")

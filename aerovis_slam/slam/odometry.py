@@ -732,7 +732,17 @@ class StereoInertialOdometry:
         frames = self.init_frames
         span = (frames[-1][0] - frames[0][0]) * 1e-6 if len(frames) >= 2 else 0.0
         aligned = None
-        if len(frames) >= ic.min_frames and span >= ic.window_s and frames[-1][0] == tau:
+        if ic.gravity == "velocity_change":
+            tracked_t = [f[0] for f in self.preinit_frames if f[2]]
+            if tracked_t and (tracked_t[-1] - tracked_t[0]) * 1e-6 >= ic.velocity_change_s and tracked_t[-1] == tau:
+                est = self._velocity_change_gravity()
+                if est is not None and est.tilt_sigma_deg <= ic.max_tilt_sigma_deg:
+                    R_wv = rotation_aligning(est.gravity_vision, np.array([0.0, 0.0, -1.0]))
+                    # no velocities from it: the initialisation's window takes the keyframe positions'
+                    # slopes, with the fallback's priors (from_vision=False)
+                    self._start(tau, R_wv, R_wv @ self.state.v_world, gtsam.imuBias.ConstantBias(), kpL, kpR, from_vision=False)
+                    return
+        elif len(frames) >= ic.min_frames and span >= ic.window_s and frames[-1][0] == tau:
             t = np.array([f[0] for f in frames])
             T = np.stack([f[1] for f in frames])
             try:
@@ -770,20 +780,31 @@ class StereoInertialOdometry:
         First choice: the velocity change over all the frames tracked so far
         (:func:`~aerovis_slam.slam.imu.gravity_from_velocity_change`), when its norm passes the
         alignment's check (within 1 m/s² of 9.81). On handheld_office (bench preset, SuperLitE
-        sync) that is 0.9 deg off where the accelerometer's mean over the first 0.2 s, which
-        assumes a static start, is 19.9 deg off (the camera accelerates there). Otherwise that mean.
+        sync) that is 1.9 deg off (1.0 deg after the initialisation's window) where the
+        accelerometer's mean over the first 0.2 s, which assumes a static start, is 19.9 deg off
+        (8.1 deg after the window): the camera accelerates there. Otherwise that mean.
         """
-        if len(self.preinit_frames) >= 6:
-            t = np.array([f[0] for f in self.preinit_frames], np.int64)
-            order = np.argsort(t, kind="stable")
-            est = gravity_from_velocity_change(t[order], np.stack([self.preinit_frames[i][1] for i in order]),
-                                               np.array([self.preinit_frames[i][2] for i in order]), self.stream, self.params)
-            if est is not None and abs(float(np.linalg.norm(est.gravity_vision)) - 9.81) < 1.0:
-                return (rotation_aligning(est.gravity_vision, np.array([0.0, 0.0, -1.0])),
-                        f"from the velocity change over the tracked frames {est.t_start_us}-{est.t_end_us} µs "
-                        f"(|g| = {np.linalg.norm(est.gravity_vision):.2f} m/s², tilt sigma {est.tilt_sigma_deg:.1f} deg)")
+        est = self._velocity_change_gravity()
+        if est is not None:
+            return (rotation_aligning(est.gravity_vision, np.array([0.0, 0.0, -1.0])),
+                    f"from the velocity change over the tracked frames {est.t_start_us}-{est.t_end_us} µs "
+                    f"(|g| = {np.linalg.norm(est.gravity_vision):.2f} m/s², tilt sigma {est.tilt_sigma_deg:.1f} deg)")
         acc = self.stream.mean_acc(self.t_first, self.t_first + 200_000)
         return gravity_rotation_from_acc(acc), "from the accelerometer (assumes a static start)"
+
+    def _velocity_change_gravity(self):
+        """:func:`~aerovis_slam.slam.imu.gravity_from_velocity_change` over the frames before the
+        initialisation, or None where tracking does not cover it or its norm is not within 1 m/s²
+        of 9.81 (the alignment's check)."""
+        if len(self.preinit_frames) < 6:
+            return None
+        t = np.array([f[0] for f in self.preinit_frames], np.int64)
+        order = np.argsort(t, kind="stable")
+        est = gravity_from_velocity_change(t[order], np.stack([self.preinit_frames[i][1] for i in order]),
+                                           np.array([self.preinit_frames[i][2] for i in order]), self.stream, self.params)
+        if est is None or abs(float(np.linalg.norm(est.gravity_vision)) - 9.81) >= 1.0:
+            return None
+        return est
 
     def _start(self, tau, R_wv, v_w, bias, kpL, kpR, *, from_vision: bool, sigmas=(0.0, 0.0),
                velocities: dict[int, np.ndarray] | None = None) -> None:
