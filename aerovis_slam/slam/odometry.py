@@ -50,8 +50,8 @@ from .cameras import StereoCameras
 from .config import SlamConfig
 from .frontend import (KeyframeSelector, LandmarkMap, edge_shapes, match_to_map, spread_subset, structure_tensor,
                        supported_keypoints)
-from .imu import (ImuStream, align_visual_inertial, gravity_from_velocity_change, gravity_rotation_from_acc, new_preintegration,
-                  preintegration_params, rotation_aligning)
+from .imu import (GRAVITY, ImuStream, align_visual_inertial, gravity_from_velocity_change, gravity_rotation_from_acc,
+                  new_preintegration, preintegration_params, rotation_aligning)
 from .ransac import bearings, pnp_ransac, position_given_rotation, relative_pose_ransac, reprojection_error, rotation_ransac
 from .refine import TrackRefiner
 from .stereo import match_stereo, triangulate
@@ -63,6 +63,12 @@ def perturb_keypoints(kp: Keypoints, rng: np.random.Generator, noise_px: float, 
     :attr:`~aerovis_slam.slam.config.DetectorConfig.keypoint_noise_px`."""
     xy = kp.xy + rng.uniform(-noise_px, noise_px, kp.xy.shape)
     return Keypoints(np.clip(xy, 0, [width - 1, height - 1]).astype(np.float32), kp.scores, kp.descriptors)
+
+
+def _plausible_gravity(norm_m_s2: float) -> bool:
+    """An estimated gravity's norm is within 1 m/s² of the true one: the fit explains the motion
+    (the check on every gravity estimate of the initialisation)."""
+    return abs(norm_m_s2 - GRAVITY) < 1.0
 
 
 def vision_velocity(p_new: np.ndarray, p_old: np.ndarray, v_old: np.ndarray, dt_s: float, min_dt_s: float) -> np.ndarray:
@@ -749,7 +755,7 @@ class StereoInertialOdometry:
                 al = align_visual_inertial(t, T, self.stream, self.params)
                 # a consistent fit: gravity of the right size, small position residuals, a plausible gyro bias
                 # and an uncertainty the smoother can start from (its own covariance)
-                if (abs(al.gravity_norm - 9.81) < 1.0 and al.residual_m < 0.05 and np.linalg.norm(al.gyro_bias) < 0.05
+                if (_plausible_gravity(al.gravity_norm) and al.residual_m < 0.05 and np.linalg.norm(al.gyro_bias) < 0.05
                         and al.tilt_sigma_deg <= ic.max_tilt_sigma_deg and al.velocity_sigma <= ic.max_velocity_sigma):
                     aligned = al
                 else:
@@ -802,7 +808,7 @@ class StereoInertialOdometry:
         order = np.argsort(t, kind="stable")
         est = gravity_from_velocity_change(t[order], np.stack([self.preinit_frames[i][1] for i in order]),
                                            np.array([self.preinit_frames[i][2] for i in order]), self.stream, self.params)
-        if est is None or abs(float(np.linalg.norm(est.gravity_vision)) - 9.81) >= 1.0:
+        if est is None or not _plausible_gravity(float(np.linalg.norm(est.gravity_vision))):
             return None
         return est
 
