@@ -209,6 +209,12 @@ class VelocityChangeGravity:
     t_end_us: int
     tilt_sigma_deg: float
 
+    @property
+    def R_world_vision(self) -> np.ndarray:
+        """(3, 3) the smallest rotation taking ``gravity_vision`` to world down (yaw left free), as
+        :attr:`Alignment.R_world_vision`."""
+        return rotation_aligning(self.gravity_vision, np.array([0.0, 0.0, -1.0]))
+
 
 def gravity_from_velocity_change(t_us: np.ndarray, T_vision_body: np.ndarray, tracked: np.ndarray, stream: ImuStream,
                                  params: gtsam.PreintegrationCombinedParams, *, end_span_s: float = 0.3,

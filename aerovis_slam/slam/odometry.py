@@ -51,7 +51,7 @@ from .config import SlamConfig
 from .frontend import (KeyframeSelector, LandmarkMap, edge_shapes, match_to_map, spread_subset, structure_tensor,
                        supported_keypoints)
 from .imu import (GRAVITY, ImuStream, align_visual_inertial, gravity_from_velocity_change, gravity_rotation_from_acc,
-                  new_preintegration, preintegration_params, rotation_aligning)
+                  new_preintegration, preintegration_params)
 from .ransac import bearings, pnp_ransac, position_given_rotation, relative_pose_ransac, reprojection_error, rotation_ransac
 from .refine import TrackRefiner
 from .stereo import match_stereo, triangulate
@@ -743,7 +743,7 @@ class StereoInertialOdometry:
             if tracked_t and (tracked_t[-1] - tracked_t[0]) * 1e-6 >= ic.velocity_change_s and tracked_t[-1] == tau:
                 est = self._velocity_change_gravity()
                 if est is not None and est.tilt_sigma_deg <= ic.max_tilt_sigma_deg:
-                    R_wv = rotation_aligning(est.gravity_vision, np.array([0.0, 0.0, -1.0]))
+                    R_wv = est.R_world_vision
                     # no velocities from it: the initialisation's window takes the keyframe positions'
                     # slopes, with the fallback's priors (from_vision=False)
                     self._start(tau, R_wv, R_wv @ self.state.v_world, gtsam.imuBias.ConstantBias(), kpL, kpR, from_vision=False)
@@ -792,7 +792,7 @@ class StereoInertialOdometry:
         """
         est = self._velocity_change_gravity()
         if est is not None:
-            return (rotation_aligning(est.gravity_vision, np.array([0.0, 0.0, -1.0])),
+            return (est.R_world_vision,
                     f"from the velocity change over the tracked frames {est.t_start_us}-{est.t_end_us} µs "
                     f"(|g| = {np.linalg.norm(est.gravity_vision):.2f} m/s², tilt sigma {est.tilt_sigma_deg:.1f} deg)")
         acc = self.stream.mean_acc(self.t_first, self.t_first + 200_000)
@@ -804,10 +804,10 @@ class StereoInertialOdometry:
         of 9.81 (the alignment's check)."""
         if len(self.preinit_frames) < 6:
             return None
-        t = np.array([f[0] for f in self.preinit_frames], np.int64)
-        order = np.argsort(t, kind="stable")
-        est = gravity_from_velocity_change(t[order], np.stack([self.preinit_frames[i][1] for i in order]),
-                                           np.array([self.preinit_frames[i][2] for i in order]), self.stream, self.params)
+        # appended frame by frame: already in time order
+        est = gravity_from_velocity_change(np.array([f[0] for f in self.preinit_frames], np.int64),
+                                           np.stack([f[1] for f in self.preinit_frames]),
+                                           np.array([f[2] for f in self.preinit_frames]), self.stream, self.params)
         if est is None or not _plausible_gravity(float(np.linalg.norm(est.gravity_vision))):
             return None
         return est
