@@ -948,6 +948,42 @@ def test_async_mode_processes_newest_state(small_flight):
     assert np.all(res.latency_ms >= np.asarray(res.stage_ms["total"]) - 1e-6)
 
 
+def test_async_run_replays_exactly_from_its_frame_slots(small_flight):
+    """An async run's frames, and under ``backend.time_budget_ms`` its backend's iteration caps,
+    depend on this machine's timing; given its ``slot_us`` and ``iteration_caps`` back the run
+    processes the same frames with the same caps and returns the same trajectory to the bit. A
+    budget of 0.01 ms makes every cap 1 here, and the replay imposes other caps (the maximum)
+    where told to. Slots outside the recording are refused."""
+    cfg = load_config("realtime")
+    det = StereoClassicalDetector("orb", 200)
+    cfg.backend.time_budget_ms = 0.01  # every update cut to one iteration (a very slow machine)
+    first = run_slam(small_flight, det, cfg, mode="async", progress=False)
+    assert first.status == "ok" and len(first.slot_us) == len(first.t_us) == len(first.iteration_caps) > 20
+    flat = [c for caps in first.iteration_caps for c in caps]
+    assert len(flat) >= 5 and set(flat) == {1} and first.info["backend_budget_cuts"] == len(flat)
+    # the same machine state is not needed: a replay with the budget off imposes the logged caps
+    cfg.backend.time_budget_ms = None
+    again = run_slam(small_flight, det, cfg, mode="async", progress=False, frame_slots=first.slot_us,
+                     frame_caps=first.iteration_caps)
+    assert again.status == "ok" and again.complete and again.info["replay_cap_mismatches"] == 0
+    assert np.array_equal(again.slot_us, first.slot_us) and np.array_equal(again.t_us, first.t_us)
+    assert again.iteration_caps == first.iteration_caps
+    assert np.array_equal(again.pose7, first.pose7) and np.array_equal(again.tracked, first.tracked)
+    assert np.all(again.latency_ms >= np.asarray(again.stage_ms["total"]) - 1e-6)
+    # the slots alone, budget off: the same frames, the caps the configuration's maximum, another estimate
+    free = run_slam(small_flight, det, cfg, mode="async", progress=False, frame_slots=first.slot_us)
+    assert np.array_equal(free.slot_us, first.slot_us) and free.info["replay_cap_mismatches"] is None
+    assert {c for caps in free.iteration_caps for c in caps} == {cfg.backend.max_iterations}
+    assert not np.array_equal(free.pose7, first.pose7)
+    with pytest.raises(DataError, match="outside this recording"):
+        run_slam(small_flight, det, cfg, mode="async", progress=False, frame_slots=first.slot_us + 10**9)
+    with pytest.raises(DataError, match="async"):
+        run_slam(small_flight, det, cfg, mode="sync", progress=False, frame_slots=first.slot_us)
+    with pytest.raises(DataError, match="same length"):
+        run_slam(small_flight, det, cfg, mode="async", progress=False, frame_slots=first.slot_us,
+                 frame_caps=first.iteration_caps[:-1])
+
+
 def test_event_reader_cameras_do_not_block_each_other(tiny_preset):
     """Consuming one camera's whole stream before the other's must not stall the reader (a full
     queue of one camera once blocked the reads of the other: a deadlock in async mode)."""

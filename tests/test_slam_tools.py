@@ -509,14 +509,17 @@ def _tiny_sequence(path):
 def _fake_runner(delta: float = 0.01, complete: bool = True, status: str = "ok", seen: dict | None = None):
     """A stand-in for run_slam with a known result: the GT at 50 Hz with z alternating by +-delta;
     a complete run's final trajectory is the GT itself."""
-    def run(sequence, detector, config, *, mode, loop_closer, progress, stop_event):
+    def run(sequence, detector, config, *, mode, loop_closer, progress, stop_event, frame_slots=None, frame_caps=None):
         if seen is not None:
-            seen.update(mode=mode, loop_closer=loop_closer, detector=detector)
+            seen.update(mode=mode, loop_closer=loop_closer, detector=detector, frame_slots=frame_slots, frame_caps=frame_caps)
         t = np.arange(2, 98) * 20_000  # 96 poses
         pose = helix(t).pose.copy()
         pose[:, 2] += delta * (-1.0) ** np.arange(len(t))
         return types.SimpleNamespace(t_us=t, pose7=pose, latency_ms=np.arange(len(t), dtype=float), wall_s=2.0,
-                                     sequence_duration_s=2.0, stage_ms={"detector": [1.0, 2.0, 3.0], "backend": []},
+                                     slot_us=t + 5_000, tracked=np.arange(len(t)) % 3 > 0,
+                                     iteration_caps=[[4, 2] if i % 10 == 0 else [] for i in range(len(t))],
+                                     sequence_duration_s=2.0, stage_ms={"detector": [1.0, 2.0, 3.0], "backend": [],
+                                                                        "total": [0.5] * len(t)},
                                      loop_closures=1, tracking_losses=2, warnings=["burst"], status=status, complete=complete,
                                      pose7_final=helix(t).pose.copy() if complete else None)
     return run
@@ -588,6 +591,52 @@ def test_cli_run_writes_outputs(tmp_path, capsys, monkeypatch, empty_config):
     # bad input: exit 2 and the message names the file
     assert main(["run", str(tmp_path / "missing.h5"), "--detector", "orb", "--out", str(out)]) == 2
     assert "missing.h5" in capsys.readouterr().err
+
+
+def test_cli_run_frames_file_and_replay(tmp_path, capsys, monkeypatch, empty_config):
+    """``frames.txt`` holds each output's slot, time, latency, processing time, tracking flag and
+    backend iteration caps; ``--frame-slots`` reads slots and caps back into the run (async only),
+    takes a plain list of slots too, and refuses bad files."""
+    seq = _tiny_sequence(tmp_path / "seq.h5")
+    seen: dict = {}
+    monkeypatch.setattr(bench_mod, "_run_slam", _fake_runner(seen=seen))
+    out = tmp_path / "out"
+    assert main(["run", str(seq), "--detector", "orb", "--config", str(empty_config), "--mode", "async", "--out", str(out),
+                 "--quiet"]) == 0
+    assert seen["frame_slots"] is None and seen["frame_caps"] is None
+    lines = [ln.split() for ln in (out / "frames.txt").read_text().splitlines() if not ln.startswith("#")]
+    t = np.arange(2, 98) * 20_000
+    caps = [[4, 2] if i % 10 == 0 else [] for i in range(96)]
+    assert len(lines) == 96 and all(len(f) == 6 for f in lines)
+    rows = np.array([[float(x) for x in f[:5]] for f in lines])
+    assert np.array_equal(rows[:, 0], t + 5_000) and np.array_equal(rows[:, 1], t)
+    assert np.array_equal(rows[:, 2], np.arange(96)) and np.all(rows[:, 3] == 0.5)
+    assert np.array_equal(rows[:, 4], np.arange(96) % 3 > 0)
+    assert lines[0][5] == "4,2" and lines[1][5] == "-"
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["frames_file"] == "frames.txt" and m["frame_slots_replayed"] is False
+    # replay: slots and caps go to the run, in async mode (the default for --frame-slots)
+    assert main(["run", str(seq), "--detector", "orb", "--config", str(empty_config), "--frame-slots",
+                 str(out / "frames.txt"), "--out", str(tmp_path / "replay"), "--quiet"]) == 0
+    assert seen["mode"] == "async" and np.array_equal(seen["frame_slots"], t + 5_000) and seen["frame_caps"] == caps
+    assert json.loads((tmp_path / "replay" / "metrics.json").read_text())["frame_slots_replayed"] is True
+    plain = tmp_path / "slots.txt"  # one slot per line: slots without caps
+    plain.write_text("# hand-made\n100000\n150000\n")
+    assert main(["run", str(seq), "--detector", "orb", "--frame-slots", str(plain), "--out", str(tmp_path / "p"), "--quiet"]) == 0
+    assert seen["frame_slots"].tolist() == [100000, 150000] and seen["frame_caps"] is None
+    capsys.readouterr()
+    # bad input: exit 2, the message names the file and what is wrong
+    bad = tmp_path / "bad.txt"
+    for text, expect in (("# only a comment\n", "no frame slots"), ("100\n90\n", "increase strictly"),
+                         ("100\nabc 1\n", "line 2"), ("1 1 0 0 1 4,x\n", "iteration caps"),
+                         ("1 1 0 0 1 4\n2\n", "all or none")):
+        bad.write_text(text)
+        assert main(["run", str(seq), "--detector", "orb", "--frame-slots", str(bad), "--out", str(out), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert "bad.txt" in err and expect in err
+    assert main(["run", str(seq), "--detector", "orb", "--mode", "sync", "--frame-slots", str(out / "frames.txt"),
+                 "--out", str(out), "--quiet"]) == 2
+    assert "async" in capsys.readouterr().err
 
 
 def test_bench_table_and_json(tmp_path, monkeypatch, empty_config):

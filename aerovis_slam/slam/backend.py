@@ -148,6 +148,12 @@ class KeyframeSmoother:
         self._noise = pixel_noise(cfg)
         self._lm_prior = gtsam.noiseModel.Isotropic.Sigma(3, 5.0)
         self.qr_fallbacks = 0  # updates that Cholesky could not solve and QR finished (over all resets)
+        # backend.time_budget_ms makes the iteration cap of an update depend on the machine's speed;
+        # to replay a run exactly, its caps are logged and can be imposed again (over all resets)
+        self.iteration_caps: list[int] = []   # the cap of every update so far
+        self.budget_cuts = 0                  # updates whose cap the time budget lowered below max_iterations
+        self.forced_caps: list[int] | None = None  # when set: the caps of the next updates, in order
+        self.forced_caps_missing = 0          # updates that found forced_caps set but empty (the budget decided)
         self.reset()
 
     def reset(self) -> None:
@@ -289,6 +295,12 @@ class KeyframeSmoother:
         budget = self.cfg.time_budget_ms
         n_iter = self.cfg.max_iterations if budget is None else int(np.clip(budget / max(self._iter_ms, 1e-3), 1,
                                                                             self.cfg.max_iterations))
+        if self.forced_caps:  # a replay (pipeline frame_caps): the cap this update had in the run replayed
+            n_iter = int(self.forced_caps.pop(0))
+        elif self.forced_caps is not None:
+            self.forced_caps_missing += 1
+        self.iteration_caps.append(n_iter)
+        self.budget_cuts += int(n_iter < self.cfg.max_iterations)
         self.smoother.params().setMaxIterations(n_iter)
         t0 = time.perf_counter()
         try:

@@ -42,6 +42,7 @@ FINAL_TRAJ_FILE = "traj_final.txt"  # complete runs only: outputs re-anchored to
 PARTIAL_TRAJ_FILE = "traj.partial.txt"
 METRICS_FILE = "metrics.json"
 PLOT_FILE = "traj.png"
+FRAMES_FILE = "frames.txt"  # per output: its frame slot, time, latency, processing time, backend caps (read back by read_frames)
 CLASSICAL = ("orb", "sift", "gftt_brief")
 MODE_CONFIG = {"sync": "accurate", "async": "realtime", "live": "realtime"}  # the paper's two settings
 BENCH_FIELDS = ("sequence", "mode", "detector", "status", "ate_rmse_m", "ate_pct", "path_length_m", "rate_hz", "loop_closures",
@@ -96,9 +97,71 @@ def _load_gt(sequence: Path) -> PoseSamples | None:
         return seq.gt
 
 
+def write_frames(path: str | os.PathLike, result, *, partial: bool = False) -> Path:
+    """``frames.txt``: one line per pose output,
+    ``slot_us t_us latency_ms processing_ms tracked iteration_caps`` (slot: the time up to which the
+    frame holds events; t: the output's time, both µs on the IMU clock; iteration_caps: the LM
+    iteration caps of the backend updates the frame made, comma-separated, ``-`` for none).
+    :func:`read_frames` reads slots and caps back to replay an async run."""
+    n = len(result.t_us)
+    slots, total, tracked = (np.asarray(x).reshape(-1) for x in (result.slot_us, result.stage_ms["total"], result.tracked))
+    caps = list(result.iteration_caps)
+    if not len(slots) == len(total) == len(tracked) == len(caps) == n:
+        raise ValueError(f"write_frames: {n} outputs but {len(slots)} slots, {len(total)} processing times, "
+                         f"{len(tracked)} tracking flags, {len(caps)} iteration caps")
+    lines = ["# aerovis-slam frames: slot_us t_us latency_ms processing_ms tracked iteration_caps"
+             + (" (PARTIAL: the run stopped early)" if partial else ""),
+             f"# replay these frames: aerovis-slam run SEQ.h5 --mode async --frame-slots {FRAMES_FILE} ..."]
+    lines += [f"{int(slots[i])} {int(result.t_us[i])} {result.latency_ms[i]:.3f} {total[i]:.3f} {int(bool(tracked[i]))} "
+              + (",".join(str(int(c)) for c in caps[i]) or "-") for i in range(n)]
+    return atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def read_frames(path: str | os.PathLike) -> tuple[np.ndarray, list[list[int]] | None]:
+    """Frame slots and backend iteration caps from a ``frames.txt`` (see :func:`write_frames`).
+
+    Returns:
+        (M,) int64 slots (µs, first column), and per slot the caps (sixth column), or None when
+        the file has no such column (e.g. a hand-made list of one slot per line); ``#`` lines
+        are comments.
+
+    Raises:
+        DataError: missing file, a line whose slot or caps are not integers, caps on some lines
+            only, no slots, or slots that are not strictly increasing.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(path, "no such file (expected a run's frames.txt: one frame slot in µs per line)")
+    slots, caps = [], []
+    for i, line in enumerate(path.read_text().splitlines(), 1):
+        fields = line.split()
+        if not fields or fields[0].startswith("#"):
+            continue
+        try:
+            slots.append(int(fields[0]))
+        except ValueError:
+            raise DataError(path, f"line {i}: first field {fields[0]!r} is not an integer frame slot (µs)") from None
+        if len(fields) >= 6:
+            try:
+                caps.append([] if fields[5] == "-" else [int(c) for c in fields[5].split(",")])
+            except ValueError:
+                raise DataError(path, f"line {i}: iteration caps {fields[5]!r} are not comma-separated integers or '-'") from None
+    if not slots:
+        raise DataError(path, "holds no frame slots")
+    if caps and len(caps) != len(slots):
+        raise DataError(path, f"iteration caps (sixth column) on {len(caps)} of {len(slots)} lines: all or none")
+    arr = np.asarray(slots, np.int64)
+    bad = np.flatnonzero(np.diff(arr) <= 0)
+    if len(bad):
+        raise DataError(path, f"frame slots must increase strictly; entry {bad[0] + 2} ({arr[bad[0] + 1]}) "
+                              f"follows {arr[bad[0]]}")
+    return arr, (caps or None)
+
+
 def run_sequence(sequence: str | os.PathLike, detector, config, out_dir: str | os.PathLike, *, mode: str | None = None,
                  loop: bool = True, progress: bool = True, stop_event: threading.Event | None = None,
-                 plot: bool = True) -> dict:
+                 plot: bool = True, frame_slots: np.ndarray | None = None,
+                 frame_caps: list[list[int]] | None = None) -> dict:
     """Run the SLAM pipeline on one sequence and write its outputs into ``out_dir``.
 
     Args:
@@ -108,6 +171,9 @@ def run_sequence(sequence: str | os.PathLike, detector, config, out_dir: str | o
         mode: ``sync`` | ``async`` | ``live`` (default: the config's).
         loop: enable loop closure.
         stop_event: set it to stop early (the outputs then say ``complete: false``).
+        frame_slots, frame_caps: async only: process these frame slots with these backend iteration
+            caps (an earlier run's ``frames.txt``, see :func:`read_frames`) instead of those the
+            simulated clock and the time budget pick: the run replayed exactly.
 
     Returns:
         The metrics dict (as written to ``metrics.json``), with ``out_dir`` and ``trajectory_file``.
@@ -126,7 +192,9 @@ def run_sequence(sequence: str | os.PathLike, detector, config, out_dir: str | o
     mode = mode or getattr(config, "mode", "sync")
     closer = make_loop_closer(detector, config) if loop else None
     try:
-        result = _run_slam(sequence, detector, config, mode=mode, loop_closer=closer, progress=progress, stop_event=stop_event)
+        kwargs = {} if frame_slots is None else {"frame_slots": frame_slots, "frame_caps": frame_caps}
+        result = _run_slam(sequence, detector, config, mode=mode, loop_closer=closer, progress=progress, stop_event=stop_event,
+                           **kwargs)
     finally:
         if closer is not None:
             closer.close()
@@ -158,6 +226,9 @@ def run_sequence(sequence: str | os.PathLike, detector, config, out_dir: str | o
                   comments=[header[0].replace("trajectory", "final trajectory"), header[1],
                             "every output moved with its keyframe's last smoother estimate and the last loop-closure pose graph"])
         metrics["final_trajectory_file"] = FINAL_TRAJ_FILE
+    write_frames(out / FRAMES_FILE, result, partial=not complete)
+    metrics["frames_file"] = FRAMES_FILE
+    metrics["frame_slots_replayed"] = frame_slots is not None
     metrics["out_dir"] = str(out)
     write_metrics(out / METRICS_FILE, metrics)
     if plot:

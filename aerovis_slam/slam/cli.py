@@ -1,7 +1,8 @@
 """``aerovis-slam``: run the SLAM runtime, evaluate trajectories, benchmark, build vocabularies.
 
     aerovis-slam run SEQ.h5 [--model BUNDLE | --detector orb|sift|gftt_brief]
-                     [--config realtime|accurate|FILE] [--mode sync|async|live] [--no-loop] --out DIR [--quiet]
+                     [--config realtime|accurate|FILE] [--mode sync|async|live] [--no-loop]
+                     [--frame-slots FRAMES.txt] --out DIR [--quiet]
     aerovis-slam eval GT EST.txt [--align se3|sim3|none] [--max-diff S] [--interpolate] [--rpe-delta S]
     aerovis-slam bench [--model BUNDLE] [--detector orb] [--sequences NAME|SEQ.h5 ...] [--preset-seed N]
                        [--modes sync async] [--config NAME|FILE] [--no-loop] [--resume] --out DIR
@@ -9,7 +10,8 @@
                        [--frames N] [--words K] [--out FILE]
 
 ``run`` writes ``DIR/traj.txt`` (TUM, body frame; ``traj.partial.txt`` with a header flag when the run
-stopped early, e.g. on Ctrl-C), ``DIR/metrics.json`` and ``DIR/traj.png`` and prints one JSON line;
+stopped early, e.g. on Ctrl-C), ``DIR/metrics.json``, ``DIR/traj.png`` and ``DIR/frames.txt`` (each
+output's frame slot, latency and processing time) and prints one JSON line;
 a complete run also writes ``DIR/traj_final.txt``, the final trajectory (outputs moved with their
 keyframes' last estimates and the last loop-closure pose graph; its accuracy is ``final`` in
 ``metrics.json``).
@@ -59,6 +61,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--config", default=None, help="realtime | accurate | a YAML file (default: accurate for sync, realtime otherwise)")
     p.add_argument("--mode", choices=("sync", "async", "live"), default=None, help="processing mode (default: the config's)")
     p.add_argument("--no-loop", action="store_true", help="disable loop closure")
+    p.add_argument("--frame-slots", metavar="FRAMES.txt", default=None,
+                   help="async: process the frame slots (and backend iteration caps) of an earlier run, its "
+                        "frames.txt, instead of those this machine's timing picks: that run reproduced")
     p.add_argument("--oracle-noise-px", type=float, default=None, metavar="PX",
                    help="diagnostic on aerovis-sim sequences: landmark observations replaced by true projections "
                         "+ Gaussian noise of PX px (perfect tracks; docs/slam.md)")
@@ -176,11 +181,17 @@ def _stop_on_sigint(what: str):
 
 
 def cmd_run(args) -> int:
-    from .bench import make_detector, run_sequence
+    from .bench import make_detector, read_frames, run_sequence
 
     seq = Path(args.sequence)
     if not seq.is_file():
         raise DataError(seq, "no such file (expected a canonical sequence .h5)")
+    slots = caps = None
+    if args.frame_slots is not None:
+        if args.mode not in (None, "async"):
+            raise DataError(Path(args.frame_slots), f"--frame-slots replays an async run's frames; --mode is {args.mode!r}")
+        slots, caps = read_frames(args.frame_slots)
+        args.mode = "async"
     config = _config(args.config, args.mode)
     if args.oracle_noise_px is not None:
         config.detector.oracle_noise_px = float(args.oracle_noise_px)
@@ -189,7 +200,7 @@ def cmd_run(args) -> int:
     detector = make_detector(args.model, args.detector, top_k=getattr(getattr(config, "detector", None), "top_k", None))
     with _stop_on_sigint("the trajectory will be written as partial") as stop:
         metrics = run_sequence(seq, detector, config, args.out, mode=mode, loop=not args.no_loop, progress=not args.quiet,
-                               stop_event=stop)
+                               stop_event=stop, frame_slots=slots, frame_caps=caps)
     summary = {k: metrics.get(k) for k in ("sequence", "detector", "mode", "config", "status", "complete", "poses", "ate_rmse_m",
                                            "ate_pct", "path_length_m", "rpe_trans_rmse_m", "rate_hz", "real_time_factor",
                                            "latency_ms_p50", "latency_ms_p90", "loop_closures", "tracking_losses")}

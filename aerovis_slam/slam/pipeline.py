@@ -78,6 +78,11 @@ class SlamResult:
         pose7_final: (N, 7) the final trajectory at the same times (every output moved with its
             keyframe's last smoother estimate and the last pose graph, see
             :func:`~aerovis_slam.slam.trajectory.final_trajectory`); None when the run did not complete.
+        slot_us: (N,) int64 the frame slot of each output: the time up to which its frame holds the
+            events (µs; ``t_us`` is at or before it, see ``detector.observation_lag_events_per_px``).
+            Passed back as ``frame_slots`` it replays the same frames.
+        iteration_caps: per output, the LM iteration caps of the backend updates its frame made
+            (``backend.time_budget_ms`` lowers them on a slow machine); ``frame_caps`` of a replay.
     """
 
     t_us: np.ndarray
@@ -98,6 +103,8 @@ class SlamResult:
     tracked: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     info: dict = field(default_factory=dict)
     pose7_final: np.ndarray | None = None
+    slot_us: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    iteration_caps: list[list[int]] = field(default_factory=list)
 
     @property
     def rate_hz(self) -> float:
@@ -139,7 +146,8 @@ def _open_inputs(path: Path):
 
 
 def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | None = "sync", loop_closer=None,
-             progress: bool = True, stop_event: threading.Event | None = None) -> SlamResult:
+             progress: bool = True, stop_event: threading.Event | None = None,
+             frame_slots: np.ndarray | None = None, frame_caps: list[list[int]] | None = None) -> SlamResult:
     """Estimate the body trajectory of a stereo event + IMU sequence.
 
     Args:
@@ -151,14 +159,32 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
         loop_closer: optional ``LoopCloser`` (closed at the end of the run).
         progress: tqdm bar on stderr over sequence time.
         stop_event: set it (from another thread) to stop early.
+        frame_slots: ``async`` only: (M,) increasing frame slots (µs, IMU clock), e.g. an earlier run's
+            ``slot_us``. The frames are these instead of those the simulated clock picks, so an async
+            run (whose frames depend on this machine's timing) is reproduced; the latencies are
+            still this run's (its clock waits for each slot).
+        frame_caps: with ``frame_slots``: per slot, the backend's iteration caps of that frame in
+            the run replayed (its ``iteration_caps``), imposed instead of what
+            ``backend.time_budget_ms`` allows on this machine now. With both the replay is exact
+            (``info["replay_cap_mismatches"]`` counts frames whose updates did not match).
 
     Raises:
-        DataError: the sequence lacks what SLAM needs (calibration, IMU, a camera), or bad mode.
+        DataError: the sequence lacks what SLAM needs (calibration, IMU, a camera), bad mode, or
+            frame slots that are not increasing or outside the recording.
     """
     path = Path(sequence)
     mode = mode or config.mode
     if mode not in MODES:
         raise DataError(None, f"mode must be one of {MODES}, got {mode!r}")
+    if frame_slots is not None:
+        frame_slots = np.asarray(frame_slots, np.int64).reshape(-1)
+        if mode != "async":
+            raise DataError(None, f"frame_slots replay an async run's frames; mode is {mode!r}")
+        if len(frame_slots) == 0 or np.any(np.diff(frame_slots) <= 0):
+            raise DataError(None, "frame_slots must be a non-empty, strictly increasing list of times (µs)")
+    if frame_caps is not None and (frame_slots is None or len(frame_caps) != len(frame_slots)):
+        raise DataError(None, f"frame_caps need frame_slots of the same length (got {len(frame_caps)} caps for "
+                              f"{0 if frame_slots is None else len(frame_slots)} slots)")
     windows = len(getattr(detector, "mcts_params", ()))
     if config.detector.min_event_support > 0 and not config.detector.support_window < windows:
         raise DataError(None, f"detector.support_window {config.detector.support_window}: the detector's MCTS has "
@@ -181,6 +207,9 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
     if t_end <= t_begin:
         raise DataError(path, f"events ({ev_first}..{ev_last} µs) and IMU ({stream.t_first}..{stream.t_last} µs) "
                               "do not overlap by more than one frame")
+    if frame_slots is not None and (frame_slots[0] < t_begin or frame_slots[-1] > t_end):
+        raise DataError(path, f"frame_slots span {frame_slots[0]}..{frame_slots[-1]} µs, outside this recording's "
+                              f"frames {t_begin}..{t_end} µs (slots of another sequence?)")
     # OpenCV's RANSAC draws from its global generator: seed it so that a run is reproducible
     cv2.setRNGSeed(0)
     oracle = None
@@ -202,6 +231,9 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
     stop_event = stop_event or threading.Event()
 
     t_out: list[int] = []
+    slots: list[int] = []
+    caps: list[list[int]] = []  # per output: the backend's iteration caps of its frame
+    cap_mismatches = [0]  # replayed frames whose backend updates did not use exactly the caps given
     T_out: list[np.ndarray] = []
     lat: list[float] = []
     tracked: list[bool] = []
@@ -217,7 +249,7 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
 
     anchors: list[tuple] = []  # per output: its keyframe, its pose in that keyframe, the live loop correction
 
-    def record(res, tau: int, latency_us: float, pre_ms: float, mcts_ms: float, proc_ms: float):
+    def record(res, slot: int, tau: int, latency_us: float, pre_ms: float, mcts_ms: float, proc_ms: float):
         nonlocal shown
         if odo.rotate_outputs is not None:  # gravity became known: earlier outputs into the world frame
             # ... and anchored to a keyframe the smoother estimates: their own keyframe where the
@@ -234,6 +266,7 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
                     anchors[i] = (k0, to_k0 @ T_out[i], res.T_corr)
             odo.rotate_outputs = None
         t_out.append(int(tau))
+        slots.append(int(slot))
         T_out.append(res.T_world_body)
         anchors.append((res.anchor_kf, res.T_kf_body, res.T_corr))
         lat.append(latency_us / 1000.0)
@@ -243,8 +276,8 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
         for k in ("detector", "matching", "refine", "tracking", "keyframe", "backend", "loop"):
             stages[k].append(float(res.timings_ms.get(k, 0.0)))
         stages["total"].append(proc_ms)
-        bar.update(max(0.0, (tau - shown) * 1e-6))
-        shown = max(shown, tau)
+        bar.update(max(0.0, (slot - shown) * 1e-6))
+        shown = max(shown, slot)
 
     warm_until = t_begin + (int(config.input.max_warm_up_s * 1e6) if config.input.max_warm_up_s is not None else 2**62)
     t_warm = [None if config.input.warm_up else t_begin]  # first processed frame slot (µs)
@@ -260,8 +293,12 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
     last_obs = [-(2**62)]  # time of the previous frame's estimate
     obs_lag: list[int] = []  # tau - time of the estimate, per frame (µs)
 
-    def iterate(tau: int, pre_ms: float, buffers=None):
-        """MCTS + odometry at tau. Returns (result, time of the estimate (µs), mcts_ms, processing_ms)."""
+    def iterate(tau: int, pre_ms: float, buffers=None, forced_caps: list[int] | None = None):
+        """MCTS + odometry at tau. Returns (result, time of the estimate (µs), mcts_ms, processing_ms).
+        forced_caps: the backend's iteration caps for this frame's updates (a replay)."""
+        n_caps = len(odo.smoother.iteration_caps)
+        missing = odo.smoother.forced_caps_missing
+        odo.smoother.forced_caps = None if forced_caps is None else list(forced_caps)
         t0 = time.perf_counter()
         if buffers is None:
             buffers, _ = feeder.snapshot()
@@ -277,6 +314,10 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
         res = odo.process(t_obs, batch, detector, new_events=n_events - counted[0])
         counted[0] = n_events
         t2 = time.perf_counter()
+        caps.append(odo.smoother.iteration_caps[n_caps:])
+        if forced_caps is not None:
+            cap_mismatches[0] += int(bool(odo.smoother.forced_caps) or odo.smoother.forced_caps_missing > missing)
+            odo.smoother.forced_caps = None
         return res, t_obs, (t1 - t0) * 1e3, (t2 - t0) * 1e3
 
     try:
@@ -298,8 +339,22 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
                     continue
                 res, t_obs, mcts_ms, proc_ms = iterate(tau, pre_ms)
                 finish = max(finish, float(tau)) + proc_ms * 1e3  # live frame queue: wait for the previous frame
-                record(res, t_obs, finish - tau, pre_ms, mcts_ms, proc_ms)
+                record(res, tau, t_obs, finish - tau, pre_ms, mcts_ms, proc_ms)
                 tau += frame_us
+        elif mode == "async" and frame_slots is not None:
+            clock = float(t_begin)
+            for i, tau in enumerate(frame_slots.tolist()):
+                if stop_event.is_set():
+                    break
+                clock = max(clock, float(tau))  # this run's clock waits for the slot the earlier run took
+                tp = time.perf_counter()
+                feeder.advance_to(tau)
+                pre_ms = (time.perf_counter() - tp) * 1e3
+                if not warm(feeder.buffers, tau):
+                    continue
+                res, t_obs, mcts_ms, proc_ms = iterate(tau, pre_ms, forced_caps=None if frame_caps is None else frame_caps[i])
+                clock += proc_ms * 1e3
+                record(res, tau, t_obs, clock - tau, pre_ms, mcts_ms, proc_ms)
         elif mode == "async":
             clock = float(t_begin)
             last_tau = None
@@ -321,7 +376,7 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
                     continue
                 res, t_obs, mcts_ms, proc_ms = iterate(tau, pre_ms)
                 clock += proc_ms * 1e3
-                record(res, t_obs, clock - tau, pre_ms, mcts_ms, proc_ms)
+                record(res, tau, t_obs, clock - tau, pre_ms, mcts_ms, proc_ms)
                 last_tau = tau
         else:  # live
             live = LivePreprocessor(feeder, stream.covered_until, t_begin - frame_us, t_end, stop_event=stop_event)
@@ -337,7 +392,7 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
                     time.sleep(0.0005)
                     continue
                 res, t_obs, mcts_ms, proc_ms = iterate(tau, 0.0, buffers)
-                record(res, t_obs, live.now_us() - tau, 0.0, mcts_ms, proc_ms)
+                record(res, tau, t_obs, live.now_us() - tau, 0.0, mcts_ms, proc_ms)
                 last_tau = tau
             if live.busy_s:
                 stages["preprocess"] = [live.busy_s * 1e3 / max(len(t_out), 1)] * len(t_out)
@@ -370,6 +425,10 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
         "landmarks": len(odo.lmap),
         "loop_corrections_applied": odo.loop_corrections,
         "backend_qr_fallbacks": odo.smoother.qr_fallbacks,
+        # backend.time_budget_ms: updates run with fewer than max_iterations (their result depends on
+        # the machine's speed, so a frame-slot replay reproduces the run exactly only when this is 0)
+        "backend_budget_cuts": odo.smoother.budget_cuts,
+        "replay_cap_mismatches": cap_mismatches[0] if frame_caps is not None else None,
         "initialized": odo.initialized,
         "t_initialized_us": odo.t_initialized,  # outputs before it are vision-only (gyro rotation, no gravity yet)
         "resolution": [cams.left.width, cams.left.height],
@@ -394,5 +453,6 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
         loop_closures=int(getattr(loop_closer, "n_closures", 0)) if loop_closer is not None else 0,
         tracking_losses=odo.tracking_losses, warnings=log.as_list(), status=status, complete=complete, mode=mode,
         detector=str(getattr(detector, "name", type(detector).__name__)), config=config.name, keyframes=odo.n_keyframes,
-        tracked=np.asarray(tracked, bool), info=info, pose7_final=pose7_final)
+        tracked=np.asarray(tracked, bool), info=info, pose7_final=pose7_final, slot_us=np.asarray(slots, np.int64),
+        iteration_caps=caps)
 
