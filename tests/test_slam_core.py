@@ -948,6 +948,34 @@ def test_async_mode_processes_newest_state(small_flight):
     assert np.all(res.latency_ms >= np.asarray(res.stage_ms["total"]) - 1e-6)
 
 
+def test_noise_filter_in_the_pipeline(small_flight):
+    """``input.noise_filter_ms``: each camera's events pass the background-activity filter on the
+    sensor grid before they reach the buffers; the run reports how many it dropped, and tracks the
+    flight within the bound of the unfiltered run (test_pipeline_tracks_a_small_flight)."""
+    from aerovis_slam.noise_filter import BackgroundActivityFilter
+
+    with Sequence(small_flight) as s:
+        streams = {c: s.events(c) for c in ("cam0", "cam1")}
+        sizes = {c: s.sensor_size(c) for c in streams}
+    dt_ms = 10.0
+    expected = 0
+    for c, ev in streams.items():
+        f = BackgroundActivityFilter(*sizes[c], dt_us=int(dt_ms * 1000))
+        f(ev)
+        expected += f.removed
+    assert 0 < expected < sum(len(ev) for ev in streams.values())
+    cfg = load_config("accurate")
+    cfg.input.noise_filter_ms = dt_ms
+    res = run_slam(small_flight, StereoClassicalDetector("orb", 300), cfg, mode="sync", progress=False)
+    assert res.status == "ok" and res.complete and res.info["initialized"]
+    # the run ingests every event up to its last frame; the stream's last events after it are not read
+    assert 0.95 * expected <= res.info["dropped_noise_filter"] <= expected
+    with Sequence(small_flight) as s:
+        gt = s.gt
+    r = ate(gt, PoseSamples(res.t_us, res.pose7), align="se3")
+    assert r["ate_rmse_m"] < 0.06 * r["path_length_m"]
+
+
 def test_async_run_replays_exactly_from_its_frame_slots(small_flight):
     """An async run's frames, and under ``backend.time_budget_ms`` its backend's iteration caps,
     depend on this machine's timing; given its ``slot_us`` and ``iteration_caps`` back the run
@@ -1070,6 +1098,10 @@ def test_configs_load_and_reject_unknown_keys(tmp_path):
     f.write_text("input:\n  max_warm_up_s: -0.1\n")
     with pytest.raises(DataError, match="input.max_warm_up_s"):
         load_config(f)
+    for bad in ("0", "-5", "2000"):
+        f.write_text(f"input:\n  noise_filter_ms: {bad}\n")
+        with pytest.raises(DataError, match="input.noise_filter_ms"):
+            load_config(f)
     for bad, key in (("gravity: accelerometer", "init.gravity"), ("velocity_change_s: 0.5", "init.velocity_change_s")):
         f.write_text(f"init:\n  {bad}\n")
         with pytest.raises(DataError, match=key):

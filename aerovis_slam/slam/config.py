@@ -54,6 +54,10 @@ class InputConfig:
         max_warm_up_s: the longest wait for it (s after the first frame slot; None: no limit): a
             slow or dark scene can take seconds to fill its longest window (3 s in a textureless
             room), and then starts on incomplete surfaces rather than lose its first seconds.
+        noise_filter_ms: background-activity filter (``aerovis_slam.noise_filter``): an event reaches
+            the buffers only when one of its 8 sensor neighbours fired at most this long before it
+            (ms; None: off). Leak and shot noise fire alone; in a textureless room they fill the
+            MCTS_Ne windows with lit dots that the detector takes for keypoints (docs/slam.md).
         chunk_events: events per read from the file (the prefetch thread's unit).
         prefetch_chunks: chunks read ahead per camera (bounded memory).
     """
@@ -64,6 +68,7 @@ class InputConfig:
     min_new_events_per_px: float = 0.005
     warm_up: bool = True
     max_warm_up_s: float | None = 0.5
+    noise_filter_ms: float | None = None
     chunk_events: int = 200_000
     prefetch_chunks: int = 4
 
@@ -440,6 +445,8 @@ def _validate(cfg: SlamConfig, path) -> None:
 
     if cfg.init.gravity not in ("alignment", "velocity_change"):
         raise DataError(path, f"init.gravity must be 'alignment' or 'velocity_change', got {cfg.init.gravity!r}")
+    if cfg.input.noise_filter_ms is not None and not 0 < cfg.input.noise_filter_ms <= 1000:
+        raise DataError(path, f"input.noise_filter_ms must be in (0, 1000] ms or null (off), got {cfg.input.noise_filter_ms}")
     if not cfg.init.velocity_change_s >= 0.8:
         raise DataError(path, f"init.velocity_change_s must be at least 0.8 s (two 0.3 s velocity fits 0.5 s apart), "
                               f"got {cfg.init.velocity_change_s}")

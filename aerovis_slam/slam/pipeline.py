@@ -325,7 +325,9 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
                              stop_event=stop_event, time_shift_us=shifts)
         feeder = EventFeeder(reader, cams, mcts_kind=detector.mcts_kind, mcts_params=detector.mcts_params,
                              rate_cap_ev_s=rate_cap,
-                             observation_lag_events_per_px=config.detector.observation_lag_events_per_px)
+                             observation_lag_events_per_px=config.detector.observation_lag_events_per_px,
+                             noise_filter_us=(None if config.input.noise_filter_ms is None
+                                              else int(round(config.input.noise_filter_ms * 1000))))
         min_dt_us = int(round(1e6 / config.max_rate_hz))
         if mode == "sync":
             finish = float(t_begin)
@@ -421,6 +423,7 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
     info = {
         "events": int(sum(feeder.events_in)) if "feeder" in locals() else 0,
         "dropped_rate_cap": int(feeder.dropped_rate_cap) if "feeder" in locals() else 0,
+        "dropped_noise_filter": int(feeder.dropped_noise_filter) if "feeder" in locals() else 0,  # input.noise_filter_ms
         "imu_gaps": len(gaps),
         "landmarks": len(odo.lmap),
         "loop_corrections_applied": odo.loop_corrections,

@@ -26,6 +26,7 @@ import numpy as np
 from ..events import EventArray
 from ..io.sequence import Sequence
 from ..mcts import TimestampBuffer
+from ..noise_filter import BackgroundActivityFilter
 from .cameras import StereoCameras
 
 _END = object()
@@ -162,14 +163,18 @@ class EventFeeder:
         reader: chunk source. cams: the camera models (pixel maps, sizes).
         mcts_kind, mcts_params: the detector's time surface (``ne``: events per pixel; ``dt``: ms).
         rate_cap_ev_s: per-camera event-rate cap (None: off).
+        noise_filter_us: background-activity filter's window per camera (µs, sensor pixels; None: off),
+            applied before the rate cap.
 
     Attributes:
         ingested_until: time (µs) up to which every event has been ingested (-inf before the first call).
         events_in: events read per camera; ``exhausted``: both streams ended.
+        noise_filters: the per-camera filters (None when off); their ``removed`` counts what they dropped.
     """
 
     def __init__(self, reader: EventReader, cams: StereoCameras, *, mcts_kind: str, mcts_params,
-                 rate_cap_ev_s: float | None = None, observation_lag_events_per_px: float = 0.0):
+                 rate_cap_ev_s: float | None = None, observation_lag_events_per_px: float = 0.0,
+                 noise_filter_us: int | None = None):
         self.reader = reader
         self.cams = cams
         self.mcts_kind = mcts_kind
@@ -182,6 +187,9 @@ class EventFeeder:
             ring_px = tuple(ring_px) + (self.observation_lag_events_per_px,)
         self.buffers = [TimestampBuffer(c.buffer_width, c.buffer_height, pixel_map=c.pixel_map, events_per_px=ring_px,
                                         max_rate_ev_s=rate_cap_ev_s) for c in cams.cams]
+        self.noise_filters = None if noise_filter_us is None else [
+            BackgroundActivityFilter(c.pixel_map.sensor_width, c.pixel_map.sensor_height, dt_us=int(noise_filter_us))
+            for c in cams.cams]
         self._pending: list[EventArray | None] = [None, None]
         self._ended = [False, False]
         self.ingested_until = -(2**62)
@@ -212,6 +220,8 @@ class EventFeeder:
                 k = int(np.searchsorted(chunk.t, t_us, side="right"))
                 if k:
                     part = EventArray(chunk.t[:k], chunk.x[:k], chunk.y[:k], chunk.p[:k])
+                    if self.noise_filters is not None:
+                        part = self.noise_filters[i](part)
                     with self.lock:
                         self.buffers[i].ingest(part)
                     total += k
@@ -244,6 +254,10 @@ class EventFeeder:
     @property
     def dropped_rate_cap(self) -> int:
         return int(sum(b.dropped_rate_cap for b in self.buffers))
+
+    @property
+    def dropped_noise_filter(self) -> int:
+        return 0 if self.noise_filters is None else int(sum(f.removed for f in self.noise_filters))
 
 
 class LivePreprocessor:
