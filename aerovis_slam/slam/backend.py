@@ -34,6 +34,7 @@ from ..geometry import invert_T
 from .cameras import StereoCameras
 from .config import BackendConfig
 from .ransac import reprojection_error
+from .stereo import is_rectified
 
 X = gtsam.symbol_shorthand.X
 V = gtsam.symbol_shorthand.V
@@ -65,16 +66,22 @@ class Observations:
         landmark: (M,) int64 landmark ids. cam: (M,) int8 0 = left, 1 = right. xy: (M, 2) pixels.
         shape: (M, 2, 2) covariance shape of each observation (identity: isotropic); the pixel noise
             is ``pixel_sigma^2 * shape`` (see :func:`~aerovis_slam.slam.frontend.edge_shapes`).
+        stereo_pair: (M,) bool: the left and right rows of one rectified row-search match (the right
+            position is the left keypoint shifted by the measured disparity, so both carry the
+            keypoint's error); False for independent detections.
     """
 
     landmark: np.ndarray
     cam: np.ndarray
     xy: np.ndarray
     shape: np.ndarray | None = None
+    stereo_pair: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.shape is None:
             self.shape = np.broadcast_to(np.eye(2), (len(self.landmark), 2, 2)).copy()
+        if self.stereo_pair is None:
+            self.stereo_pair = np.zeros(len(self.landmark), bool)
 
     @classmethod
     def empty(cls) -> "Observations":
@@ -84,7 +91,7 @@ class Observations:
         return len(self.landmark)
 
     def subset(self, mask: np.ndarray) -> "Observations":
-        return Observations(self.landmark[mask], self.cam[mask], self.xy[mask], self.shape[mask])
+        return Observations(self.landmark[mask], self.cam[mask], self.xy[mask], self.shape[mask], self.stereo_pair[mask])
 
     @classmethod
     def concatenate(cls, parts: list["Observations"]) -> "Observations":
@@ -92,7 +99,8 @@ class Observations:
         if not parts:
             return cls.empty()
         return cls(np.concatenate([p.landmark for p in parts]), np.concatenate([p.cam for p in parts]),
-                   np.concatenate([p.xy for p in parts]), np.concatenate([p.shape for p in parts]))
+                   np.concatenate([p.xy for p in parts]), np.concatenate([p.shape for p in parts]),
+                   np.concatenate([p.stereo_pair for p in parts]))
 
 
 def pixel_noise(cfg: BackendConfig, shape: np.ndarray | None = None) -> gtsam.noiseModel.Base:
@@ -111,6 +119,29 @@ def pixel_noise(cfg: BackendConfig, shape: np.ndarray | None = None) -> gtsam.no
 
 def _noise_for(cfg: BackendConfig, shape: np.ndarray, isotropic) -> gtsam.noiseModel.Base:
     return isotropic if np.allclose(shape, np.eye(2)) else pixel_noise(cfg, shape)
+
+
+def stereo_pair_covariance(cfg: BackendConfig, shape: np.ndarray) -> np.ndarray:
+    """(3, 3) covariance (px^2) of a row-search stereo pair as ``(u_left, u_right, v)``.
+
+    The right position is ``u_left - d``: it repeats the left keypoint's error ``e`` (covariance
+    ``pixel_sigma^2 * shape`` in (u, v)) and adds the disparity's, ``e_d`` (``disparity_sigma_px``),
+    independent of it. So ``cov(u_r, u_r) = S_uu + s_d^2``, ``cov(u_r, u_l) = S_uu``,
+    ``cov(u_r, v) = S_uv``.
+    """
+    S = cfg.pixel_sigma ** 2 * np.asarray(shape, np.float64)
+    sd2 = float(cfg.disparity_sigma_px) ** 2
+    return np.array([[S[0, 0], S[0, 0], S[0, 1]],
+                     [S[0, 0], S[0, 0] + sd2, S[0, 1]],
+                     [S[0, 1], S[0, 1], S[1, 1]]])
+
+
+def stereo_pair_noise(cfg: BackendConfig, shape: np.ndarray) -> gtsam.noiseModel.Base:
+    """:func:`stereo_pair_covariance` in the configured robust loss (threshold in sigmas of the
+    whitened 3-vector, as for the projection factors)."""
+    k = cfg.robust_k
+    est = gtsam.noiseModel.mEstimator.Huber.Create(k) if cfg.robust == "huber" else gtsam.noiseModel.mEstimator.Cauchy.Create(k)
+    return gtsam.noiseModel.Robust.Create(est, gtsam.noiseModel.Gaussian.Covariance(stereo_pair_covariance(cfg, shape)))
 
 
 def bias_noise(acc_sigma: float, gyro_sigma: float) -> gtsam.noiseModel.Base:
@@ -147,6 +178,13 @@ class KeyframeSmoother:
         self._bPs = [c.body_P_sensor for c in cams.cams]
         self._noise = pixel_noise(cfg)
         self._lm_prior = gtsam.noiseModel.Isotropic.Sigma(3, 5.0)
+        # backend.disparity_sigma_px: row-search pairs as one stereo factor, on a rectified rig only
+        # (gtsam's stereo camera model: the right camera at +b along the left's x axis, same K)
+        self._stereo_cal = None
+        if cfg.disparity_sigma_px is not None and is_rectified(cams.left.K, cams.right.K, cams.T_right_left):
+            K = cams.left.K
+            self._stereo_cal = gtsam.Cal3_S2Stereo(K[0, 0], K[1, 1], 0.0, K[0, 2], K[1, 2], -float(cams.T_right_left[0, 3]))
+        self.stereo_factors = 0  # stereo-pair factors added (over all resets)
         self.qr_fallbacks = 0  # updates that Cholesky could not solve and QR finished (over all resets)
         # backend.time_budget_ms makes the iteration cap of an update depend on the machine's speed;
         # to replay a run exactly, its caps are logged and can be imposed again (over all resets)
@@ -234,7 +272,16 @@ class KeyframeSmoother:
         stereo_seen = set(ids[counts >= 2].tolist())
         dropped = 0
         new_keys = 0
-        for j, cam, xy, shape in zip(obs.landmark.tolist(), obs.cam.tolist(), obs.xy, obs.shape):
+        # backend.disparity_sigma_px: a row-search pair becomes one stereo factor (its right row is
+        # then skipped below)
+        pair_right: dict[int, np.ndarray] = {}
+        if self._stereo_cal is not None and obs.stereo_pair.any():
+            left = set(obs.landmark[obs.stereo_pair & (obs.cam == 0)].tolist())
+            right = obs.stereo_pair & (obs.cam == 1)
+            pair_right = {j: xy for j, xy in zip(obs.landmark[right].tolist(), obs.xy[right]) if j in left}
+        for j, cam, xy, shape, paired in zip(obs.landmark.tolist(), obs.cam.tolist(), obs.xy, obs.shape, obs.stereo_pair.tolist()):
+            if paired and cam == 1 and j in pair_right:
+                continue
             key = self.lm_key.get(j)
             if key is None:
                 if j not in stereo_seen or j not in landmark_positions:
@@ -248,8 +295,16 @@ class KeyframeSmoother:
                 # against pixel-accurate stereo it weighs nothing.
                 graph.add(gtsam.PriorFactorPoint3(key, p, self._lm_prior))
                 new_keys += 1
-            graph.add(gtsam.GenericProjectionFactorCal3_S2(np.asarray(xy, np.float64), _noise_for(self.cfg, shape, self._noise),
-                                                           X(kf_id), key, self._cal[cam], False, False, self._bPs[cam]))
+            if paired and cam == 0 and j in pair_right:
+                xr = float(pair_right[j][0])
+                graph.add(gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(float(xy[0]), xr, float(xy[1])),
+                                                      stereo_pair_noise(self.cfg, shape), X(kf_id), key, self._stereo_cal,
+                                                      False, False, self._bPs[0]))
+                self.stereo_factors += 1
+                self.lm_obs.setdefault(j, []).append(seq)  # two rays in one factor (see _observations_to_drop)
+            else:
+                graph.add(gtsam.GenericProjectionFactorCal3_S2(np.asarray(xy, np.float64), _noise_for(self.cfg, shape, self._noise),
+                                                               X(kf_id), key, self._cal[cam], False, False, self._bPs[cam]))
             stamps[key] = float(seq)
             self.lm_time[j] = seq
             self.lm_obs.setdefault(j, []).append(seq)

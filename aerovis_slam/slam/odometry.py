@@ -54,7 +54,7 @@ from .imu import (GRAVITY, ImuStream, align_visual_inertial, gravity_from_veloci
                   new_preintegration, preintegration_params)
 from .ransac import bearings, pnp_ransac, position_given_rotation, relative_pose_ransac, reprojection_error, rotation_ransac
 from .refine import TrackRefiner
-from .stereo import match_stereo, triangulate
+from .stereo import is_rectified, match_stereo, triangulate
 
 
 def perturb_keypoints(kp: Keypoints, rng: np.random.Generator, noise_px: float, width: int, height: int) -> Keypoints:
@@ -585,15 +585,21 @@ class StereoInertialOdometry:
         if len(obs):
             self.lmap.last_kf[np.unique(obs.landmark)] = kf
         ratio = mc.edge_max_ratio
+        # the rectified row search places the right position at the left keypoint minus the measured
+        # disparity: the two rows share the keypoint's error (backend.disparity_sigma_px models that)
+        row_search = images is not None and is_rectified(self.cams.left.K, self.cams.right.K, self.cams.T_right_left)
         new_obs = Observations(np.concatenate([new_ids, new_ids]),
                                np.concatenate([np.zeros(len(new_ids), np.int8), np.ones(len(new_ids), np.int8)]),
                                np.concatenate([kpL.xy[rowsL], xyR]).astype(np.float64),
                                np.concatenate([edge_shapes(tensors[0], kpL.xy[rowsL], max_ratio=ratio),
-                                               edge_shapes(tensors[1], xyR, max_ratio=ratio)]))
+                                               edge_shapes(tensors[1], xyR, max_ratio=ratio)]),
+                               np.full(2 * len(new_ids), row_search))
         if self.refiner is not None and len(new_obs):
             self.refiner.anchor(new_obs)
         if self.oracle is not None and len(new_obs):
             new_obs, _ = self.oracle.replace(tau, new_obs)
+            # (a replacement holds true projections plus independent noise per row: no shared error,
+            # and Observations made anew carry no stereo_pair flags)
             if self.oracle.replaces:
                 self._triangulate_oracle_pairs(new_obs, T_wc0)
         all_obs = Observations.concatenate([obs, new_obs])

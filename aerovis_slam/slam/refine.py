@@ -145,7 +145,7 @@ class TrackRefiner:
                 self.stats.refined += int(ok.sum())
                 self.stats.rejected += int((~ok).sum())
                 self.stats.shift_sum_px += float(shift[ok].sum())
-        out = Observations(obs.landmark, obs.cam, xy, obs.shape.copy())
+        out = Observations(obs.landmark, obs.cam, xy, obs.shape.copy(), obs.stereo_pair.copy())
         if new_anchor.any():
             self.anchor(out.subset(new_anchor))
         self._prune()
