@@ -11,7 +11,8 @@
 
 ``run`` writes ``DIR/traj.txt`` (TUM, body frame; ``traj.partial.txt`` with a header flag when the run
 stopped early, e.g. on Ctrl-C), ``DIR/metrics.json``, ``DIR/traj.png`` and ``DIR/frames.txt`` (each
-output's frame slot, latency and processing time) and prints one JSON line;
+output's frame slot, latency, processing time and backend iteration caps, which ``--frame-slots``
+replays) and prints one JSON line;
 a complete run also writes ``DIR/traj_final.txt``, the final trajectory (outputs moved with their
 keyframes' last estimates and the last loop-closure pose graph; its accuracy is ``final`` in
 ``metrics.json``).

@@ -428,8 +428,8 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
         "landmarks": len(odo.lmap),
         "loop_corrections_applied": odo.loop_corrections,
         "backend_qr_fallbacks": odo.smoother.qr_fallbacks,
-        # backend.time_budget_ms: updates run with fewer than max_iterations (their result depends on
-        # the machine's speed, so a frame-slot replay reproduces the run exactly only when this is 0)
+        # backend.time_budget_ms: updates run with fewer than max_iterations (the cap depends on the
+        # machine's speed; frames.txt logs every cap, and a frame-slot replay imposes them again)
         "backend_budget_cuts": odo.smoother.budget_cuts,
         "replay_cap_mismatches": cap_mismatches[0] if frame_caps is not None else None,
         "initialized": odo.initialized,
