@@ -112,6 +112,12 @@ def pixel_noise(cfg: BackendConfig, shape: np.ndarray | None = None) -> gtsam.no
         base = gtsam.noiseModel.Isotropic.Sigma(2, cfg.pixel_sigma)
     else:
         base = gtsam.noiseModel.Gaussian.Covariance(cfg.pixel_sigma ** 2 * np.asarray(shape, np.float64))
+    return _robust(cfg, base)
+
+
+def _robust(cfg: BackendConfig, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
+    """``base`` in the configured robust loss (``robust``, threshold ``robust_k`` in sigmas of the
+    whitened residual)."""
     k = cfg.robust_k
     est = gtsam.noiseModel.mEstimator.Huber.Create(k) if cfg.robust == "huber" else gtsam.noiseModel.mEstimator.Cauchy.Create(k)
     return gtsam.noiseModel.Robust.Create(est, base)
@@ -139,9 +145,7 @@ def stereo_pair_covariance(cfg: BackendConfig, shape: np.ndarray) -> np.ndarray:
 def stereo_pair_noise(cfg: BackendConfig, shape: np.ndarray) -> gtsam.noiseModel.Base:
     """:func:`stereo_pair_covariance` in the configured robust loss (threshold in sigmas of the
     whitened 3-vector, as for the projection factors)."""
-    k = cfg.robust_k
-    est = gtsam.noiseModel.mEstimator.Huber.Create(k) if cfg.robust == "huber" else gtsam.noiseModel.mEstimator.Cauchy.Create(k)
-    return gtsam.noiseModel.Robust.Create(est, gtsam.noiseModel.Gaussian.Covariance(stereo_pair_covariance(cfg, shape)))
+    return _robust(cfg, gtsam.noiseModel.Gaussian.Covariance(stereo_pair_covariance(cfg, shape)))
 
 
 def bias_noise(acc_sigma: float, gyro_sigma: float) -> gtsam.noiseModel.Base:

@@ -54,7 +54,7 @@ from .imu import (GRAVITY, ImuStream, align_visual_inertial, gravity_from_veloci
                   new_preintegration, preintegration_params)
 from .ransac import bearings, pnp_ransac, position_given_rotation, relative_pose_ransac, reprojection_error, rotation_ransac
 from .refine import TrackRefiner
-from .stereo import is_rectified, match_stereo, triangulate
+from .stereo import match_stereo, triangulate, uses_row_search
 
 
 def perturb_keypoints(kp: Keypoints, rng: np.random.Generator, noise_px: float, width: int, height: int) -> Keypoints:
@@ -592,7 +592,7 @@ class StereoInertialOdometry:
         ratio = mc.edge_max_ratio
         # the rectified row search places the right position at the left keypoint minus the measured
         # disparity: the two rows share the keypoint's error (backend.disparity_sigma_px models that)
-        row_search = images is not None and is_rectified(self.cams.left.K, self.cams.right.K, self.cams.T_right_left)
+        row_search = uses_row_search(self.cams.left.K, self.cams.right.K, self.cams.T_right_left, images)
         new_obs = Observations(np.concatenate([new_ids, new_ids]),
                                np.concatenate([np.zeros(len(new_ids), np.int8), np.ones(len(new_ids), np.int8)]),
                                np.concatenate([kpL.xy[rowsL], xyR]).astype(np.float64),

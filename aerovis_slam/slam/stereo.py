@@ -89,6 +89,12 @@ def is_rectified(K0: np.ndarray, K1: np.ndarray, T_1_0: np.ndarray, tol: float =
             and abs(T_1_0[1, 3]) < tol and abs(T_1_0[2, 3]) < tol and abs(T_1_0[0, 3]) > 0)
 
 
+def uses_row_search(K0: np.ndarray, K1: np.ndarray, T_1_0: np.ndarray, images) -> bool:
+    """Whether :func:`match_stereo` finds right positions by the rectified row search (the left
+    keypoint shifted by the measured disparity) rather than by matching right keypoints."""
+    return images is not None and is_rectified(K0, K1, T_1_0)
+
+
 def search_disparity(img0: np.ndarray, img1: np.ndarray, xy0: np.ndarray, *, min_disparity: float, max_disparity: float,
                      radius: int = 4, min_ncc: float = 0.75, uniqueness: float = 0.1,
                      min_horizontal_gradient: float = 0.1, min_support: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
@@ -206,7 +212,7 @@ def match_stereo(kp0: Keypoints, kp1: Keypoints, K0: np.ndarray, K1: np.ndarray,
     if len(idx0) == 0:
         return empty
     xy0 = kp0.xy[idx0].astype(np.float64)
-    if images is not None and is_rectified(K0, K1, T_1_0):
+    if uses_row_search(K0, K1, T_1_0, images):
         fb = K0[0, 0] * abs(T_1_0[0, 3])
         d, ok = search_disparity(images[0], images[1], xy0, min_disparity=max(fb / max_depth_m, min_disparity_px),
                                  max_disparity=fb / min_depth_m, min_ncc=min_ncc)
