@@ -123,6 +123,21 @@ def _robust(cfg: BackendConfig, base: gtsam.noiseModel.Base) -> gtsam.noiseModel
     return gtsam.noiseModel.Robust.Create(est, base)
 
 
+def track_age_shapes(cfg: BackendConfig, shape: np.ndarray, age_s: np.ndarray) -> np.ndarray:
+    """Observation shapes (M, 2, 2) with the track-age term of ``backend.track_drift_px2_per_s``.
+
+    The covariance :func:`pixel_noise` makes of the result is ``(pixel_sigma^2 + drift * age_s) *
+    shape``: a keypoint that wanders from its first sighting's scene point like a random walk
+    (``drift`` px^2 per second of track age, ``age_s`` (M,) seconds since the landmark's first
+    sighting). Unchanged without the option.
+    """
+    drift = cfg.track_drift_px2_per_s
+    if not drift:
+        return shape
+    age = np.clip(np.asarray(age_s, np.float64), 0.0, None)
+    return shape * (1.0 + drift * age / cfg.pixel_sigma ** 2)[:, None, None]
+
+
 def _noise_for(cfg: BackendConfig, shape: np.ndarray, isotropic) -> gtsam.noiseModel.Base:
     return isotropic if np.allclose(shape, np.eye(2)) else pixel_noise(cfg, shape)
 

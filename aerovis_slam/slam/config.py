@@ -263,6 +263,11 @@ class BackendConfig:
             (docs/slam.md, "Stereo pairs"). 0.6: the row search's measured disparity error, rms 0.33,
             0.37 and 0.70 px on slider_wall, spin_hdr_window and handheld_office (docs/slam.md,
             "The stereo search's sub-pixel error").
+        track_drift_px2_per_s: a landmark observation's variance grows with the age of its track,
+            ``pixel_sigma^2 + track_drift_px2_per_s * age_s`` (times its edge shape): keypoints
+            wander from their first sighting's scene point like a random walk (docs/slam.md,
+            "Track refinement": median 0.7 px in the first 50 ms, 1.9 px after a second on
+            handheld_loop), so old sightings carry less. None: every sighting ``pixel_sigma``.
     """
 
     window_keyframes: int = 8
@@ -279,6 +284,7 @@ class BackendConfig:
     prior_gyro_bias: float = 0.01
     max_landmarks: int = 800
     disparity_sigma_px: float | None = 0.6
+    track_drift_px2_per_s: float | None = None
 
 
 @dataclass
@@ -456,6 +462,9 @@ def _validate(cfg: SlamConfig, path) -> None:
         raise DataError(path, f"init.gravity must be 'alignment' or 'velocity_change', got {cfg.init.gravity!r}")
     if cfg.backend.disparity_sigma_px is not None and not cfg.backend.disparity_sigma_px > 0:
         raise DataError(path, f"backend.disparity_sigma_px must be positive (px) or null (off), got {cfg.backend.disparity_sigma_px}")
+    drift = cfg.backend.track_drift_px2_per_s
+    if drift is not None and not drift >= 0:
+        raise DataError(path, f"backend.track_drift_px2_per_s must be >= 0 (px^2 per second of track age) or null (off), got {drift}")
     if cfg.input.noise_filter_ms is not None and not 0 < cfg.input.noise_filter_ms <= 1000:
         raise DataError(path, f"input.noise_filter_ms must be in (0, 1000] ms or null (off), got {cfg.input.noise_filter_ms}")
     if not cfg.init.velocity_change_s >= 0.8:

@@ -45,7 +45,7 @@ import numpy as np
 from ..calib import ImuNoise
 from ..geometry import invert_T, transform_points
 from ..keypoints import Keypoints, match_keypoints
-from .backend import KeyframeSmoother, NavEstimate, Observations, track_frame
+from .backend import KeyframeSmoother, NavEstimate, Observations, track_age_shapes, track_frame
 from .cameras import StereoCameras
 from .config import SlamConfig
 from .frontend import (KeyframeSelector, LandmarkMap, edge_shapes, match_to_map, spread_subset, structure_tensor,
@@ -356,6 +356,8 @@ class StereoInertialOdometry:
         for c in (0, 1):  # observation shapes at the (refined) positions
             rows = obs.cam == c
             obs.shape[rows] = edge_shapes(tensors[c], obs.xy[rows], max_ratio=cfg.matching.edge_max_ratio)
+        # older sightings have wandered further from the track's scene point (backend.track_drift_px2_per_s)
+        obs.shape = track_age_shapes(cfg.backend, obs.shape, (tau - self.lmap.born_t[obs.landmark]) * 1e-6)
         if self.oracle is not None:
             obs, keep = self.oracle.replace(tau, obs)
             obs_kp = obs_kp[keep]
