@@ -7,6 +7,7 @@ import csv
 import json
 from pathlib import Path
 
+import onnxruntime
 import pytest
 
 torch = pytest.importorskip("torch", reason="learned models need the train extra (torch)")
@@ -59,6 +60,7 @@ def test_compare_same_pairs_one_table(tiny, dt_model, tmp_path, capsys):
     doc = json.loads((out / "compare.json").read_text())
     assert doc["missing"] == ([] if shipped_plus else ["superevent_plus"])
     assert [r["method"] for r in doc["rows"]] == expected and doc["command"].startswith("aerovis-eval compare --data")
+    assert doc["host"]["environment"]["packages"]["onnxruntime"] == onnxruntime.__version__
     # every method saw the same (sequence, t0, t1) pairs
     keys = {m: [(r["sequence"], p["t0_us"], p["t1_us"]) for r in res for p in r["per_pair"]] for m, res in doc["results"].items()}
     assert all(k == keys["orb"] for k in keys.values()) and len(keys["orb"]) == lines[0]["pairs"]

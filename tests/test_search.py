@@ -154,6 +154,7 @@ def test_sweep_jobs_write_metrics(tmp_path, sim_cache, capsys):
         lat = m["latency"]
         assert lat["resolution"] == [424, 240] and lat["batch"] == 2 and lat["precision"] == "fp32" and lat["note"] is None
         assert m["crop"] == [40, 56] and Path(m["checkpoint"]).exists() and Path(m["weights"]).exists()
+        assert m["environment"]["packages"]["torch"] == torch.__version__  # what the job was measured with
         # the latency was measured on the bundle kept beside the job, which holds this job's network
         meta = json.loads((run / "bundle_fp32" / "metadata.json").read_text())
         assert meta["descriptor_dim"] == dim and (meta["width"], meta["height"], meta["batch"]) == (424, 240, 2)

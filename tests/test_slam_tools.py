@@ -671,6 +671,14 @@ def test_bench_table_and_json(tmp_path, monkeypatch, empty_config):
     assert rows[0]["loops_better_than_drift"] is None  # no closure judged (the fake runs have no loop records)
     assert "| 48.0 (1 LC) |" in table and "better)" not in table
     assert "(3 LC, 2 better)" in bench_mod.format_table([dict(rows[0], loop_closures=3, loops_better_than_drift=2)])
+    # what the figures were measured with: beside bench.json, in the table's footer and in every run's metrics.json
+    import numpy
+
+    env = json.loads((tmp_path / "b" / "environment.json").read_text())
+    assert env["packages"]["numpy"] == numpy.__version__
+    assert f"numpy {numpy.__version__}" in table.splitlines()[-1]
+    run_env = json.loads((tmp_path / "b" / "tiny_a" / "learned-sync" / "metrics.json").read_text())["environment"]
+    assert run_env == env
     # a diverged run is marked as such
     assert bench_mod.classify({"status": "ok", "complete": True, "ate_rmse_m": 0.5, "path_length_m": 1.0}) == "diverged"
 
@@ -941,3 +949,25 @@ def test_loop_errors_judge_a_closure_by_the_ground_truth():
     assert r["error_m"] == pytest.approx(0.0, abs=1e-9) and r["error_deg"] == pytest.approx(0.0, abs=1e-6)
     assert r["true_drift_m"] == pytest.approx(0.1, abs=1e-4) and r["true_drift_deg"] == pytest.approx(2.0, abs=1e-3)
     assert loop_errors(gt, 200_000, 2_500_000, T_true, T_true) is None
+
+
+def test_software_versions_name_the_installed_distributions(monkeypatch):
+    import importlib.metadata
+
+    import numpy
+
+    from aerovis_slam import environment
+
+    v = environment.software_versions()
+    assert v["packages"]["numpy"] == numpy.__version__ and "torch" not in v["packages"]
+    assert v["python"].count(".") == 2 and v["aerovis"] == environment.__version__
+    assert v["commit"] is None or len(v["commit"]) == 40
+    assert "torch" in environment.software_versions(training=True)["packages"]  # the test environment has the training stack
+    # an absent distribution is left out, not recorded as a guess
+    real = importlib.metadata.version
+    monkeypatch.setattr(environment.metadata, "version",
+                        lambda n: (_ for _ in ()).throw(importlib.metadata.PackageNotFoundError(n)) if n == "gtsam" else real(n))
+    assert "gtsam" not in environment.software_versions()["packages"]
+    line = environment.describe({"aerovis": "0.1.0", "commit": "0123456789" * 4, "uncommitted_changes": True, "python": "3.11.7",
+                                 "packages": {"numpy": "2.4.6"}})
+    assert line == "aerovis 0.1.0 (0123456+changes), python 3.11.7, numpy 2.4.6"

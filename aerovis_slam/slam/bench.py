@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..environment import describe, software_versions
 from ..errors import DataError
 from ..measurements import PoseSamples
 from .report import compute_metrics, plot_trajectory, write_metrics
@@ -41,6 +42,7 @@ TRAJ_FILE = "traj.txt"
 FINAL_TRAJ_FILE = "traj_final.txt"  # complete runs only: outputs re-anchored to their keyframes' final estimates
 PARTIAL_TRAJ_FILE = "traj.partial.txt"
 METRICS_FILE = "metrics.json"
+ENVIRONMENT_FILE = "environment.json"  # bench: what its runs were measured with (environment.software_versions)
 PLOT_FILE = "traj.png"
 FRAMES_FILE = "frames.txt"  # per output: its frame slot, time, latency, processing time, backend caps (read back by read_frames)
 CLASSICAL = ("orb", "sift", "gftt_brief")
@@ -204,7 +206,8 @@ def run_sequence(sequence: str | os.PathLike, detector, config, out_dir: str | o
              "keypoint_noise_seed": int(getattr(det_cfg, "keypoint_noise_seed", 0)),
              # the perfect-tracks diagnostic (oracle.py): None for a run of the detector's own keypoints
              "oracle_noise_px": getattr(det_cfg, "oracle_noise_px", None),
-             "keyframes": getattr(result, "keyframes", None), "pipeline_info": getattr(result, "info", None)}
+             "keyframes": getattr(result, "keyframes", None), "pipeline_info": getattr(result, "info", None),
+             "environment": software_versions()}
     if closer is not None:
         result.warnings.extend(w for w in closer.warnings if w not in result.warnings)
         if gt is not None:  # each closure judged by the ground truth: did it measure better than the drift it corrected?
@@ -313,6 +316,8 @@ def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str 
         check_diagnostics(oracle_noise_px, keypoint_errors)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    software = software_versions()  # each run's metrics.json has its own; a resumed run may come from another environment
+    atomic_write_text(out / ENVIRONMENT_FILE, json.dumps(software, indent=2) + "\n")
     oracles = [None] if oracle_noise_px is None else [float(x) for x in np.atleast_1d(oracle_noise_px)]
     jobs = [(Path(s), d, m, o, i) for s in sequences for m in modes for d in detectors for o in oracles for i in range(repeats)]
     rows: list[dict] = []
@@ -351,7 +356,7 @@ def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str 
                 + ("" if status != "failed" else f" ({metrics.get('status')})"))
         # rewrite after every run: an interrupted benchmark keeps what it measured
         atomic_write_text(out / "bench.json", json.dumps(rows, indent=2) + "\n")
-        atomic_write_text(out / "table.md", format_table(rows))
+        atomic_write_text(out / "table.md", format_table(rows, software=software))
         if stop_event is not None and stop_event.is_set():
             break
     return rows
@@ -388,11 +393,12 @@ def _median_ate_pct(runs: list[dict], key: str = "ate_pct") -> float | None:
     return med if np.isfinite(med) else None
 
 
-def format_table(rows: list[dict]) -> str:
+def format_table(rows: list[dict], *, software: dict | None = None) -> str:
     """Markdown tables in the form of the paper's Table I: ATE RMSE [cm] per sequence (rows) and
     detector x mode (columns), the best per row in bold, failures named; then processing rates.
     These show the first (unperturbed) run of each cell; with repeats a third table gives the mean,
-    minimum and maximum ATE % over all of them."""
+    minimum and maximum ATE % over all of them. ``software`` (:func:`~aerovis_slam.environment.software_versions`)
+    adds a footer naming what the figures were measured with."""
     all_rows = rows
     rows = [r for r in rows if _repeat(r) == 0]
     dets = list(dict.fromkeys(r["detector"] for r in rows))
@@ -486,6 +492,8 @@ def format_table(rows: list[dict]) -> str:
         if any(r.get("ate_pct_final") is not None for r in all_rows):
             lines += ["", "The same runs' final trajectories (`traj_final.txt`): mean (min-max) and median ATE [% of path].", ""]
             lines += spread_table("ate_pct_final")
+    if software is not None:
+        lines += ["", f"Measured with {describe(software)}; figures move when these versions change (`environment.json`)."]
     return "\n".join(lines) + "\n"
 
 

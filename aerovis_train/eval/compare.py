@@ -298,7 +298,10 @@ def main_compare(args, argv: list[str] | None) -> int:
 
     from aerovis_train.search.metrics import write_json, write_text
 
-    host = {"machine": platform.machine(), "cpus": os.cpu_count(), "loadavg_start": os.getloadavg()}
+    from aerovis_slam.environment import software_versions
+
+    host = {"machine": platform.machine(), "cpus": os.cpu_count(), "loadavg_start": os.getloadavg(),
+            "environment": software_versions(training=True)}
     methods, missing = resolve_models(args.models) if args.models else ([], [])
     if missing:
         print(f"aerovis-eval: compare: no weights installed for {', '.join(missing)} (aerovis_train/weights/<name>.pt): left out; "

@@ -15,7 +15,8 @@ alike) and writes the result atomically with :func:`write_json`. A ``metrics.jso
   :func:`aerovis_export.export_bundle` and timed by :func:`aerovis_slam.bundle.benchmark_bundle`.
 
 Latency depends on the machine and on its load: ``latency.threads`` and ``host`` say where it
-was measured; compare latencies only within one search on one machine.
+was measured; compare latencies only within one search on one machine. ``environment``
+(:func:`aerovis_slam.environment.software_versions`) names the commit and library versions.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from aerovis_slam.environment import software_versions
 from aerovis_slam.fileio import atomic_write_json, atomic_write_text
 
 METRICS_FORMAT = "aerovis-metrics/1"
@@ -187,6 +189,7 @@ def job_metrics(model, model_cfg: dict, *, val: dict | None, overrides: list[str
         "latency": None,
         "latency_error": None,
         "host": {"machine": platform.machine(), "processor": platform.processor() or None, "cpus": os.cpu_count()},
+        "environment": software_versions(training=True),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
     if mc["latency"]:

@@ -1,0 +1,73 @@
+"""The software a result was measured with: recorded next to every benchmark and run.
+
+A SLAM run is deterministic within one environment, but a new resolution of its libraries (numpy,
+OpenCV, ONNX Runtime, gtsam, numba, ...) moves the figures: on the `bench` preset the same commit
+gave 2.51 % and 3.14 % sync ATE on handheld_loop in two environments. Results from different
+sessions are only comparable when each says what it ran on, so ``metrics.json`` of a run, the
+``environment.json`` of a bench and ``metrics.json`` / ``compare.json`` of training and evaluation
+all carry :func:`software_versions`.
+"""
+
+from __future__ import annotations
+
+import functools
+import platform
+import subprocess
+from importlib import metadata
+from pathlib import Path
+
+from . import __version__
+
+#: distributions whose version moves the runtime's figures (the runtime's own dependencies)
+RUNTIME_DISTRIBUTIONS = ("numpy", "opencv-python-headless", "opencv-python", "onnxruntime", "onnxruntime-gpu", "gtsam", "scipy",
+                         "numba", "evo", "h5py")
+#: distributions that move training and evaluation figures on top of those
+TRAINING_DISTRIBUTIONS = ("torch", "lightning", "kornia", "onnx", "hydra-core", "torchao")
+
+
+def _distribution_version(name: str) -> str | None:
+    try:
+        return metadata.version(name)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+@functools.lru_cache(maxsize=1)
+def _source_commit() -> tuple[str | None, bool | None]:
+    """(git commit, has uncommitted changes) of the checkout this package runs from, or (None, None)
+    for an installed wheel, a machine without git, or anything else that does not answer in 5 s."""
+    root = Path(__file__).resolve().parent.parent
+    if not (root / ".git").exists():
+        return None, None
+    try:
+        sha = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5, check=True)
+        status = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                                text=True, timeout=5, check=True)
+    except (OSError, subprocess.SubprocessError):
+        return None, None
+    return sha.stdout.strip() or None, bool(status.stdout.strip())
+
+
+def software_versions(*, training: bool = False) -> dict:
+    """What the figures of this process were measured with.
+
+    Args:
+        training: add the training stack (torch, lightning, ...) to the runtime's distributions.
+
+    Returns:
+        ``{"python": "3.11.9", "platform": "Linux-...-x86_64", "aerovis": "0.1.0", "commit": sha or None,
+        "uncommitted_changes": bool or None, "packages": {distribution: version}}``, with only the
+        installed distributions in ``packages`` (JSON-ready).
+    """
+    names = RUNTIME_DISTRIBUTIONS + (TRAINING_DISTRIBUTIONS if training else ())
+    packages = {n: v for n in names if (v := _distribution_version(n)) is not None}
+    commit, dirty = _source_commit()
+    return {"python": platform.python_version(), "platform": platform.platform(), "aerovis": __version__, "commit": commit, "uncommitted_changes": dirty, "packages": packages}
+
+
+def describe(versions: dict) -> str:
+    """One line for a table's footer: ``aerovis 0.1.0 (08f0e21), python 3.11.9, numpy 2.4.6, ...``."""
+    commit = versions.get("commit")
+    head = f"aerovis {versions.get('aerovis')}" + (f" ({commit[:7]}{'+changes' if versions.get('uncommitted_changes') else ''})"
+                                                   if commit else "")
+    return ", ".join([head, f"python {versions.get('python')}"] + [f"{k} {v}" for k, v in versions.get("packages", {}).items()])
