@@ -13,7 +13,7 @@ import pytest
 from aerovis_slam.errors import DataError
 from aerovis_slam.geometry import interpolate_poses, pose7_to_matrix, rotation_angle_deg, so3_exp
 from aerovis_slam.io.sequence import Sequence
-from aerovis_slam.measurements import PoseSamples
+from aerovis_slam.measurements import ImuSamples, PoseSamples
 from aerovis_slam.sim import SequenceSpec, Simulator, write_sequence
 from aerovis_slam.sim.cache import ensure_preset
 from aerovis_slam.sim.rig import load_rig
@@ -25,7 +25,7 @@ from aerovis_slam.slam.frontend import project_landmarks
 from aerovis_slam.slam.odometry import StereoInertialOdometry
 from aerovis_slam.slam.imu import (ImuStream, align_visual_inertial, gravity_from_velocity_change, new_preintegration,
                                   preintegration_params)
-from aerovis_slam.slam.pipeline import run_slam
+from aerovis_slam.slam.pipeline import check_frame_slots, run_slam
 from aerovis_slam.slam.ransac import (bearings, pnp_ransac, position_given_rotation, project_points, reprojection_error,
                                       rotation_error_deg, rotation_ransac)
 from aerovis_slam.slam.stereo import search_disparity, triangulate
@@ -1158,6 +1158,15 @@ def test_async_run_replays_exactly_from_its_frame_slots(small_flight):
         run_slam(small_flight, det, cfg, mode="async", progress=False, frame_slots=first.slot_us + 10**9)
     with pytest.raises(DataError, match="async"):
         run_slam(small_flight, det, cfg, mode="sync", progress=False, frame_slots=first.slot_us)
+    # async's first slot is the newest IMU sample at or before t_begin: with 200 Hz IMU samples at
+    # multiples of 5000 µs and t_begin = 20029 µs that is 20000, which a replay must accept; 19999 is
+    # one the run could not have taken (the bench's spin_hdr_window replay was refused this way)
+    t = np.arange(0, 100_001, 5000)
+    stream = ImuStream(ImuSamples(t, np.zeros((len(t), 3)), np.tile([0.0, 0.0, 9.81], (len(t), 1))))
+    check_frame_slots(np.array([20000, 30000, 100_000]), stream, 20029, 100_000)
+    for bad in ([19999, 30000], [20000, 100_001]):
+        with pytest.raises(DataError, match="outside this recording's frames 20000..100000"):
+            check_frame_slots(np.array(bad), stream, 20029, 100_000)
     with pytest.raises(DataError, match="same length"):
         run_slam(small_flight, det, cfg, mode="async", progress=False, frame_slots=first.slot_us,
                  frame_caps=first.iteration_caps[:-1])

@@ -145,6 +145,22 @@ def _open_inputs(path: Path):
     return calib, imu, ranges, shifts
 
 
+def check_frame_slots(frame_slots: np.ndarray, stream, t_begin: int, t_end: int, path=None) -> None:
+    """Refuse replay slots (µs) that an async run of this recording could not have taken.
+
+    Async takes the newest IMU sample at or before its clock (``stream.covered_until``), and the
+    clock starts at ``t_begin``: its first slot can precede ``t_begin`` by up to one IMU period
+    (spin_hdr_window of the bench preset: slot 20000 µs for ``t_begin`` 20029 µs).
+
+    Raises:
+        DataError: a slot before ``stream.covered_until(t_begin)`` or after ``t_end``.
+    """
+    first_slot = stream.covered_until(t_begin)
+    if frame_slots[0] < first_slot or frame_slots[-1] > t_end:
+        raise DataError(path, f"frame_slots span {frame_slots[0]}..{frame_slots[-1]} µs, outside this recording's "
+                              f"frames {first_slot}..{t_end} µs (slots of another sequence?)")
+
+
 def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | None = "sync", loop_closer=None,
              progress: bool = True, stop_event: threading.Event | None = None,
              frame_slots: np.ndarray | None = None, frame_caps: list[list[int]] | None = None) -> SlamResult:
@@ -207,9 +223,8 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
     if t_end <= t_begin:
         raise DataError(path, f"events ({ev_first}..{ev_last} µs) and IMU ({stream.t_first}..{stream.t_last} µs) "
                               "do not overlap by more than one frame")
-    if frame_slots is not None and (frame_slots[0] < t_begin or frame_slots[-1] > t_end):
-        raise DataError(path, f"frame_slots span {frame_slots[0]}..{frame_slots[-1]} µs, outside this recording's "
-                              f"frames {t_begin}..{t_end} µs (slots of another sequence?)")
+    if frame_slots is not None:
+        check_frame_slots(frame_slots, stream, t_begin, t_end, path)
     # OpenCV's RANSAC draws from its global generator: seed it so that a run is reproducible
     cv2.setRNGSeed(0)
     oracle = None
