@@ -62,7 +62,8 @@ def software_versions(*, training: bool = False) -> dict:
     names = RUNTIME_DISTRIBUTIONS + (TRAINING_DISTRIBUTIONS if training else ())
     packages = {n: v for n in names if (v := _distribution_version(n)) is not None}
     commit, dirty = _source_commit()
-    return {"python": platform.python_version(), "platform": platform.platform(), "aerovis": __version__, "commit": commit, "uncommitted_changes": dirty, "packages": packages}
+    return {"python": platform.python_version(), "platform": platform.platform(), "aerovis": __version__,
+            "commit": commit, "uncommitted_changes": dirty, "packages": packages}
 
 
 def describe(versions: dict) -> str:
