@@ -44,6 +44,17 @@ def _copy_with_camera_clock(src, dst, delta_us: int, timeshift_us: float) -> Pat
 
 
 @pytest.fixture(scope="session")
+def tiny_cache(tmp_path_factory) -> Path:
+    """A simulator cache folder holding the `tiny` preset (seed 0), generated once per test session
+    (~4 s) for the modules that train, export and compare on it; they only read it."""
+    from aerovis_slam.sim.cache import ensure_preset
+
+    cache = tmp_path_factory.mktemp("simcache")
+    ensure_preset("tiny", str(cache), progress=False)
+    return cache
+
+
+@pytest.fixture(scope="session")
 def camera_clock_copy():
     """:func:`_copy_with_camera_clock`: (src, dst, delta_us, timeshift_us) -> dst."""
     return _copy_with_camera_clock

@@ -25,10 +25,10 @@ DT_CFG = {"name": "dt_net", "encoder": "vgg_lite", "encoder_conf": {"width_mult"
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
+def tiny(tiny_cache):
     from aerovis_slam.sim.cache import ensure_preset
 
-    return Path(ensure_preset("tiny", str(tmp_path_factory.mktemp("simcache")), progress=False))
+    return Path(ensure_preset("tiny", str(tiny_cache), progress=False))
 
 
 @pytest.fixture(scope="module")

@@ -42,10 +42,10 @@ def _tensorrt_gpu() -> bool:
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory) -> Path:
+def tiny(tiny_cache) -> Path:
     from aerovis_slam.sim.cache import ensure_preset
 
-    return ensure_preset("tiny", str(tmp_path_factory.mktemp("simcache")), progress=False)
+    return ensure_preset("tiny", str(tiny_cache), progress=False)
 
 
 def _export(tiny: Path, out: Path, *extra: str, parity: bool = True, model: str = "superlite", hw=("48", "64")) -> int:

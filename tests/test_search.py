@@ -119,12 +119,8 @@ def test_crop_fits_the_model(capsys):
 # A real sweep: two tiny jobs through Hydra's multirun, each writing metrics.json
 # ---------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def sim_cache(tmp_path_factory):
-    from aerovis_slam.sim.cache import ensure_preset
-
-    cache = tmp_path_factory.mktemp("simcache")
-    ensure_preset("tiny", str(cache), progress=False)
-    return cache
+def sim_cache(tiny_cache):
+    return tiny_cache  # the session's `tiny` preset (conftest.py)
 
 
 def test_sweep_jobs_write_metrics(tmp_path, sim_cache, capsys):

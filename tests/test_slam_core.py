@@ -763,6 +763,13 @@ def small_flight(tmp_path_factory):
     return path
 
 
+@pytest.fixture(scope="module")
+def small_flight_orb(small_flight):
+    """The small flight's run with ORB (300 keypoints) and the ``accurate`` config, sync: the
+    reference that several tests compare their variant with (sync runs are deterministic)."""
+    return run_slam(small_flight, StereoClassicalDetector("orb", 300), load_config("accurate"), mode="sync", progress=False)
+
+
 def test_pipeline_tracks_a_small_flight(small_flight):
     """Stereo visual-inertial tracking with ORB on the same time surfaces. At 212x120 the stereo
     disparity at the scene's ~2.7 m is ~2 px, so single landmarks carry ~25 % depth noise; the
@@ -851,14 +858,16 @@ def test_oracle_projects_the_scene_point_of_a_keypoint(small_flight):
     assert np.all(np.abs(z_point - depth[r, c])[smooth] <= step[smooth] + 1e-4)
 
 
-def test_keypoint_errors_are_measured_without_changing_the_run(small_flight):
+def test_keypoint_errors_are_measured_without_changing_the_run(small_flight, small_flight_orb):
     """``detector.measure_keypoint_errors`` (``run --keypoint-errors``): the trajectory is the plain
     run's to the last digit (observations are only compared, never replaced), and the distances by
     track age add up to all measured observations. With track refinement off the same keypoints lie
     farther from their scene points (refinement aligns each to its landmark's first view)."""
-    results = {}
+    results = {(True, False): small_flight_orb}  # refinement is on in `accurate`
     for refine in (True, False):
         for measure in (False, True):
+            if (refine, measure) in results:
+                continue
             cfg = load_config("accurate")
             cfg.refinement.enabled = refine
             cfg.detector.measure_keypoint_errors = measure
@@ -908,14 +917,14 @@ def test_pipeline_with_exact_tracks_recovers_the_trajectory(small_flight):
     assert r["ate_rmse_m"] < 0.5 * 2.7 / fx
 
 
-def test_calibrated_camera_clock_offset_is_undone(small_flight, tmp_path, camera_clock_copy):
+def test_calibrated_camera_clock_offset_is_undone(small_flight, small_flight_orb, tmp_path, camera_clock_copy):
     """Cameras 30 ms late on the IMU's clock (t_imu = t_cam - 30 ms, Kalibr's timeshift_cam_imu):
     with the offset in the calibration the runtime moves the events back onto the IMU clock and
     the run is the original one, output for output (sync mode is deterministic); without it the
     events are taken 30 ms late and the run differs."""
     late = 30_000
     cfg = load_config("accurate")
-    ref = run_slam(small_flight, StereoClassicalDetector("orb", 300), cfg, mode="sync", progress=False)
+    ref = small_flight_orb
     fixed = camera_clock_copy(small_flight, tmp_path / "late_calibrated.h5", late, -late)
     res = run_slam(fixed, StereoClassicalDetector("orb", 300), cfg, mode="sync", progress=False)
     assert res.status == ref.status == "ok"
