@@ -17,7 +17,7 @@ from aerovis_slam.measurements import ImuSamples, PoseSamples
 from aerovis_slam.sim import SequenceSpec, Simulator, write_sequence
 from aerovis_slam.sim.cache import ensure_preset
 from aerovis_slam.sim.rig import load_rig
-from aerovis_slam.slam.backend import KeyframeSmoother, NavEstimate, Observations, track_frame
+from aerovis_slam.slam.backend import KeyframeSmoother, NavEstimate, Observations, track_frame, track_frame_or_refit
 from aerovis_slam.slam.cameras import StereoCameras
 from aerovis_slam.slam.config import SlamConfig, load_config
 from aerovis_slam.slam.detectors import StereoClassicalDetector
@@ -409,6 +409,67 @@ def test_smoother_and_tracking_on_exact_observations():
     assert len(sm.kf_ids) <= cfg.backend.window_keyframes  # older keyframes were marginalised
 
 
+def test_refit_takes_vision_over_an_overconfident_keyframe_prior():
+    """``track_frame_or_refit`` (``tracking.refit_on_disagreement``): the keyframe's velocity is
+    1.5 m/s off, so after 0.2 s the IMU prediction is 30 cm from the true pose, while the tight
+    keyframe priors (1 cm, 5 cm/s) say it is within ~1.5 cm. 20 exact observations (0.5 px noise)
+    of landmarks 1.5-3 m away then lose against the priors: the fit stays far from the truth and
+    rejects most of them (measured 5 kept, 19.5 cm off). Held as after a restart (3 cm, 0.5 m/s)
+    the keyframe gives way and the fit keeps all 20, within 2 cm (0.5 px at 2 m is ~0.5 cm per
+    observation). With a consistent prior, or without loose sigmas, there is no second fit."""
+    spec = SequenceSpec("est", rig="davis240_stereo", trajectory="handheld", trajectory_seed=7, scene_seed=7, duration_s=1.2)
+    sim = Simulator(spec)
+    traj = sim.trajectory
+    cfg = SlamConfig()
+    cams = StereoCameras.from_rig(sim.rig, max_width=424, max_height=240, size_multiple=1)
+    stream = ImuStream(sim.imu())
+    params = preintegration_params(sim.rig.imu)
+    rng = np.random.default_rng(0)
+    t0, t1 = 0.3, 0.5
+
+    def T_gt(t):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = traj.rotation(np.array([t]))[0], traj.position(np.array([t]))[0]
+        return T
+
+    T1 = T_gt(t1)
+    cam0 = cams.cams[0]
+    z = rng.uniform(1.5, 3.0, 400)  # landmarks in front of the left camera at t1, over its whole view
+    uv = rng.uniform([0, 0], [cam0.width, cam0.height], (400, 2))
+    pc = np.column_stack([(uv - cam0.K[:2, 2]) / np.diag(cam0.K)[:2] * z[:, None], z])
+    T_wc = T1 @ cam0.T_body_cam
+    lms = pc @ T_wc[:3, :3].T + T_wc[:3, 3]
+    parts = []
+    for c, cam in enumerate(cams.cams):
+        proj, vis = project_landmarks(lms, T1, cam)
+        ids = np.flatnonzero(vis)[:10]
+        parts.append(Observations(ids, np.full(len(ids), c, np.int8), proj[ids] + rng.normal(0, 0.5, (len(ids), 2))))
+    obs = Observations.concatenate(parts)
+    assert len(obs) == 20
+    pim = new_preintegration(params)
+    stream.integrate(pim, int(t0 * 1e6), int(t1 * 1e6))
+    loose = (0.01, 0.03, cfg.tracking.recovery_velocity_sigma)
+
+    def fits(velocity_error):
+        kf = NavEstimate(T_gt(t0), traj.position(np.array([t0]), 1)[0] + velocity_error, gtsam.imuBias.ConstantBias())
+        pred = NavEstimate.from_navstate(pim.predict(kf.navstate(), kf.bias), kf.bias)
+        guess = NavEstimate(T1, pred.v_world, kf.bias)  # RANSAC's pose, the prediction's velocity
+        args = (cams, cfg.backend, kf, pim, guess, obs, lms[obs.landmark])
+        tight = track_frame(*args, max_reproj_px=3.0)
+        return (tight, track_frame_or_refit(*args, max_reproj_px=3.0, min_inliers=12, loose_kf_sigmas=loose),
+                track_frame_or_refit(*args, max_reproj_px=3.0, min_inliers=12, loose_kf_sigmas=None))
+
+    def error_m(r):
+        return float(np.linalg.norm(r.state.T_world_body[:3, 3] - T1[:3, 3]))
+
+    tight, (refit, refitted), (plain, plain_refitted) = fits(np.array([1.5, 0.0, 0.0]))
+    assert tight.inliers.sum() < 12 and error_m(tight) > 0.10  # the prior wins against vision
+    assert refitted and refit.inliers.all() and error_m(refit) < 0.02
+    assert not plain_refitted and np.array_equal(plain.state.T_world_body, tight.state.T_world_body)
+    tight, (same, refitted), _ = fits(np.zeros(3))
+    assert not refitted and tight.inliers.all() and np.array_equal(same.state.T_world_body, tight.state.T_world_body)
+
+
 @pytest.mark.parametrize("disparity_sigma_px", [None, 0.4])
 def test_stereo_pair_factor_weighs_the_disparity(disparity_sigma_px):
     """A new landmark's stereo pair from the row search shares the left keypoint's error; only the
@@ -783,6 +844,7 @@ def test_pipeline_tracks_a_small_flight(small_flight):
     res = run_slam(small_flight, StereoClassicalDetector("orb", 300), cfg, mode="sync", progress=False)
     assert res.status == "ok" and res.complete
     assert res.info["initialized"]
+    assert res.info["pose_refits"] == 0  # tracking.refit_on_disagreement is off in `accurate`
     # the alignment needs init.window_s (0.3 s) of tracked frames; by init.timeout_s (1.5 s) the
     # static-start fallback takes over (one 20 ms frame of slack); both from the first output, whose
     # frame the warm-up (input.warm_up) may delay by up to input.max_warm_up_s

@@ -476,9 +476,14 @@ class TrackResult:
     extra: dict = field(default_factory=dict)
 
 
+# Per-frame tracking's priors on the last keyframe's state (rotation rad, position m, velocity m/s):
+# about its remaining uncertainty once the smoother has converged.
+TRACKING_KF_SIGMAS = (0.003, 0.01, 0.05)
+
+
 def track_frame(cams: StereoCameras, cfg: BackendConfig, kf_state: NavEstimate,
                 pim: gtsam.PreintegratedCombinedMeasurements, guess: NavEstimate, obs: Observations,
-                points_world: np.ndarray, *, max_reproj_px: float, kf_sigmas=(0.003, 0.01, 0.05),
+                points_world: np.ndarray, *, max_reproj_px: float, kf_sigmas=TRACKING_KF_SIGMAS,
                 rotation_prior: tuple[np.ndarray, float] | None = None, use: np.ndarray | None = None) -> TrackResult:
     """Motion-only estimate of the current frame from the IMU and fixed map landmarks.
 
@@ -549,3 +554,31 @@ def track_frame(cams: StereoCameras, cfg: BackendConfig, kf_state: NavEstimate,
             T_cw = invert_T(T_wb @ cams.cams[c].T_body_cam)
             inl[m] = reprojection_error(points_world[m], T_cw, cams.cams[c].K, obs.xy[m]) <= max_reproj_px
     return TrackResult(state, inl, iterations=int(opt.iterations()), error=float(opt.error()))
+
+
+def track_frame_or_refit(cams: StereoCameras, cfg: BackendConfig, kf_state: NavEstimate,
+                         pim: gtsam.PreintegratedCombinedMeasurements, guess: NavEstimate, obs: Observations,
+                         points_world: np.ndarray, *, max_reproj_px: float, min_inliers: int,
+                         loose_kf_sigmas: tuple[float, float, float] | None, kf_sigmas=TRACKING_KF_SIGMAS,
+                         rotation_prior: tuple[np.ndarray, float] | None = None,
+                         use: np.ndarray | None = None) -> tuple[TrackResult, bool]:
+    """:func:`track_frame`, fitted again with the keyframe held by ``loose_kf_sigmas`` when the
+    first fit keeps fewer than ``min_inliers`` of at least as many observations (RANSAC found them
+    consistent with one pose, the fit did not); the second fit is taken when it keeps
+    ``min_inliers``. Returns (result, whether it is the second fit's).
+
+    Vision and the IMU-propagated keyframe state then disagree by more than ``kf_sigmas``
+    allow, and one of them is wrong. A keyframe's velocity a few tenths of a m/s off moves the
+    prediction by centimetres over the 0.1-0.3 s between frames of a slow machine's async
+    processing, and the tight priors reject consistent observations frame after frame until
+    tracking is lost (``tracking.refit_on_disagreement``). ``loose_kf_sigmas=None``: no refit.
+    """
+    tr = track_frame(cams, cfg, kf_state, pim, guess, obs, points_world, max_reproj_px=max_reproj_px, kf_sigmas=kf_sigmas,
+                     rotation_prior=rotation_prior, use=use)
+    if loose_kf_sigmas is None or len(obs) < min_inliers or int(tr.inliers.sum()) >= min_inliers:
+        return tr, False
+    loose = track_frame(cams, cfg, kf_state, pim, guess, obs, points_world, max_reproj_px=max_reproj_px,
+                        kf_sigmas=loose_kf_sigmas, rotation_prior=rotation_prior, use=use)
+    if int(loose.inliers.sum()) >= min_inliers:
+        return loose, True
+    return tr, False

@@ -355,6 +355,14 @@ class TrackingConfig:
             sigma): the smoother's own velocity is what drifted while vision was missing.
         recovery_keyframes: keyframes after a restart whose per-frame tracking holds the keyframe
             state loosely (its velocity is not converged yet).
+        refit_on_disagreement: when RANSAC finds ``ransac.min_inliers`` 3D-2D inliers but the
+            motion-only fit, which holds the last keyframe's state tightly, keeps fewer, fit again
+            holding it as loosely as after a restart and take that fit when it keeps enough
+            (:func:`~aerovis_slam.slam.backend.track_frame_or_refit`; counted as ``pose_refits``).
+            For async processing on a slow CPU (``realtime``): at 4-8 poses/s a keyframe velocity
+            0.5 m/s off (handheld_office, bench preset) rejected consistent observations frame after
+            frame until tracking was lost. Off in ``accurate``: at 50 Hz the IMU prediction is
+            rarely the one that is wrong (docs/slam.md, "Refit on disagreement").
     """
 
     loss_frames: int = 10
@@ -362,6 +370,7 @@ class TrackingConfig:
     max_imu_gap_ms: float = 20.0
     recovery_velocity_sigma: float = 0.5
     recovery_keyframes: int = 3
+    refit_on_disagreement: bool = False
 
 
 @dataclass

@@ -45,7 +45,8 @@ import numpy as np
 from ..calib import ImuNoise
 from ..geometry import invert_T, transform_points
 from ..keypoints import Keypoints, match_keypoints
-from .backend import KeyframeSmoother, NavEstimate, Observations, track_age_shapes, track_frame
+from .backend import (TRACKING_KF_SIGMAS, KeyframeSmoother, NavEstimate, Observations, track_age_shapes,
+                      track_frame_or_refit)
 from .cameras import StereoCameras
 from .config import SlamConfig
 from .frontend import (KeyframeSelector, LandmarkMap, edge_shapes, match_to_map, spread_subset, structure_tensor,
@@ -181,6 +182,7 @@ class StereoInertialOdometry:
         self.t_last_good: int | None = None
         self.lost = False
         self.tracking_losses = 0
+        self.pose_refits = 0  # frames tracked by the loosened refit (tracking.refit_on_disagreement)
         self.recent_velocities: deque[np.ndarray] = deque(maxlen=10)  # of visually tracked frames (initialised)
         self.recovery_kfs = 0                           # keyframes left with loose tracking priors
         self._restart_sigma_vel: float | None = None    # velocity prior of the last smoother restart
@@ -372,9 +374,15 @@ class StereoInertialOdometry:
                     use = spread_subset(obs.xy, cfg.backend.tracking_max_observations, cfg.keyframes.cell_px,
                                         self.cams.left.width)
                     # after a restart the keyframe's velocity is not converged: hold it loosely
-                    loose = {} if self.recovery_kfs == 0 else {"kf_sigmas": (0.01, 0.03, cfg.tracking.recovery_velocity_sigma)}
-                    tr = track_frame(self.cams, cfg.backend, self.kf_state, self.pim, guess, obs, self.lmap.pos[obs.landmark],
-                                     max_reproj_px=cfg.matching.max_reproj_px, rotation_prior=rot_prior, use=use, **loose)
+                    recovery = (0.01, 0.03, cfg.tracking.recovery_velocity_sigma)
+                    tight = TRACKING_KF_SIGMAS if self.recovery_kfs == 0 else recovery
+                    # vision against the keyframe's IMU prediction: see tracking.refit_on_disagreement
+                    refit = recovery if (cfg.tracking.refit_on_disagreement and visual and self.recovery_kfs == 0) else None
+                    tr, refitted = track_frame_or_refit(
+                        self.cams, cfg.backend, self.kf_state, self.pim, guess, obs, self.lmap.pos[obs.landmark],
+                        max_reproj_px=cfg.matching.max_reproj_px, min_inliers=cfg.ransac.min_inliers, kf_sigmas=tight,
+                        loose_kf_sigmas=refit, rotation_prior=rot_prior, use=use)
+                    self.pose_refits += int(refitted)
                     state = tr.state
                     keep = tr.inliers
                     obs, obs_kp = obs.subset(keep), obs_kp[keep]

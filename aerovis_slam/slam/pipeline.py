@@ -443,6 +443,7 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
         "landmarks": len(odo.lmap),
         "loop_corrections_applied": odo.loop_corrections,
         "backend_qr_fallbacks": odo.smoother.qr_fallbacks,
+        "pose_refits": odo.pose_refits,  # tracking.refit_on_disagreement: frames the loosened refit tracked
         # backend.time_budget_ms: updates run with fewer than max_iterations (the cap depends on the
         # machine's speed; frames.txt logs every cap, and a frame-slot replay imposes them again)
         "backend_budget_cuts": odo.smoother.budget_cuts,
