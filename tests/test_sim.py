@@ -421,7 +421,7 @@ def test_parallel_generation_matches_serial(tmp_path):
     assert not (tmp_path / "w0").exists()
 
 
-def test_ensure_preset_caches(tmp_path, monkeypatch):
+def test_ensure_preset_caches(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("AEROVIS_CACHE", str(tmp_path / "envcache"))
     from aerovis_slam.sim import cache
 
@@ -440,6 +440,21 @@ def test_ensure_preset_caches(tmp_path, monkeypatch):
     assert time.perf_counter() - t0 < 0.5
     q = ensure_preset("tiny", cache_dir=str(tmp_path / "explicit"), seed=1)
     assert q == tmp_path / "explicit" / "tiny-seed1-v1"
+    # the OpenCV that drew the scenes' text is on record; a cache made with another one is used as
+    # it is, with one note (its text textures may differ from a regeneration's)
+    import cv2
+
+    summary = json.loads((q / "summary.json").read_text())
+    assert summary["opencv"] == cv2.__version__ and summary["environment"]["packages"]["numpy"] == np.__version__
+    capsys.readouterr()
+    summary["opencv"] = "4.0.0"
+    (q / "summary.json").write_text(json.dumps(summary))
+    before = {f.name: f.stat().st_mtime_ns for f in q.iterdir()}
+    assert ensure_preset("tiny", cache_dir=str(tmp_path / "explicit"), seed=1) == q
+    assert ensure_preset("tiny", cache_dir=str(tmp_path / "explicit"), seed=1) == q
+    err = capsys.readouterr().err
+    assert err.count("was generated with OpenCV 4.0.0") == 1 and f"OpenCV {cv2.__version__} is installed" in err
+    assert {f.name: f.stat().st_mtime_ns for f in q.iterdir()} == before  # nothing regenerated
     with pytest.raises(DataError, match="unknown preset"):
         ensure_preset("nope", cache_dir=str(tmp_path / "x"))
     assert not (tmp_path / "x").exists()

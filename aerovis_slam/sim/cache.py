@@ -55,6 +55,7 @@ def ensure_preset(name: str, cache_dir: str | None = None, seed: int = 0, *, pro
     root = Path(cache_dir).expanduser() if cache_dir is not None else cache_root()
     final = root / f"{name}-seed{seed}-v{SIM_VERSION}"
     if (final / "summary.json").is_file():
+        _note_opencv_mismatch(final)
         return final
     try:
         root.mkdir(parents=True, exist_ok=True)
@@ -72,3 +73,34 @@ def ensure_preset(name: str, cache_dir: str | None = None, seed: int = 0, *, pro
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return final
+
+
+_noted: set[Path] = set()
+
+
+def _note_opencv_mismatch(folder: Path) -> None:
+    """Say once per folder, on stderr, when a cached preset was generated with another OpenCV.
+
+    The simulator draws its "text" textures with ``cv2.putText``, and OpenCV 5.1 draws them
+    differently from 5.0 (up to 0.09 in intensity): the same preset generated under another
+    version is other data, and figures measured on the two differ (a small flight's ATE went from
+    3.3 to 6.1 %). The cache is kept, since it is consistent with itself and with every figure
+    measured on it; deleting the folder regenerates it with the installed OpenCV. Caches from
+    before this record (no ``opencv`` in ``summary.json``) are not checked.
+    """
+    import json
+    import sys
+
+    import cv2
+
+    if folder in _noted:
+        return
+    try:
+        made_with = json.loads((folder / "summary.json").read_text()).get("opencv")
+    except (OSError, ValueError, AttributeError):
+        return
+    if made_with and made_with != cv2.__version__:
+        _noted.add(folder)
+        print(f"aerovis: note: {folder} was generated with OpenCV {made_with}, and OpenCV {cv2.__version__} is installed. "
+              "Its text textures (cv2.putText) may render differently, so a regenerated preset would not be the "
+              "same data. The cache is used as it is; delete the folder to regenerate it.", file=sys.stderr)

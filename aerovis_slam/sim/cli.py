@@ -110,10 +110,18 @@ def run_preset(name: str, out_dir: str | os.PathLike, *, seed: int = 0, duration
             except BaseException:
                 pool.shutdown(wait=True, cancel_futures=True)  # finished sequences stay; none is half-written
                 raise
+    import cv2
+
+    from ..environment import software_versions
+
     summary = {"preset": name, "seed": seed, "duration_override_s": duration, "sequences": rows,
                "total_events": sum(r["events"] for r in rows),
                "total_duration_s": sum(r["duration_s"] for r in rows),
-               "wall_s": round(time.perf_counter() - t0, 2)}
+               "wall_s": round(time.perf_counter() - t0, 2),
+               # the scenes' text textures are drawn by cv2.putText, whose output changed in 5.1
+               # (see aerovis_slam.sim.cache.ensure_preset, which compares it on every use)
+               "opencv": cv2.__version__,
+               "environment": software_versions()}
     atomic_write_json(out / "summary.json", summary)
     return summary
 
