@@ -66,6 +66,14 @@ def software_versions(*, training: bool = False) -> dict:
             "commit": commit, "uncommitted_changes": dirty, "packages": packages}
 
 
+def host_description() -> dict:
+    """The machine a latency was measured on: ``{"machine": "x86_64", "processor": str or None, "cpus": int}``
+    (the search's job metrics and ``aerovis-eval compare`` record it beside their timings)."""
+    import os
+
+    return {"machine": platform.machine(), "processor": platform.processor() or None, "cpus": os.cpu_count()}
+
+
 def describe(versions: dict) -> str:
     """One line for a table's footer: ``aerovis 0.1.0 (08f0e21), python 3.11.9, numpy 2.4.6, ...``."""
     commit = versions.get("commit")

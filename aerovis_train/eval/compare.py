@@ -294,14 +294,12 @@ def add_parser(sub) -> None:
 def main_compare(args, argv: list[str] | None) -> int:
     """Run ``aerovis-eval compare`` with parsed ``args``: JSON lines on stdout, the table on stderr."""
     import os
-    import platform
-
+    
     from aerovis_train.search.metrics import write_json, write_text
 
-    from aerovis_slam.environment import software_versions
+    from aerovis_slam.environment import host_description, software_versions
 
-    host = {"machine": platform.machine(), "cpus": os.cpu_count(), "loadavg_start": os.getloadavg(),
-            "environment": software_versions(training=True)}
+    host = {**host_description(), "loadavg_start": os.getloadavg(), "environment": software_versions(training=True)}
     methods, missing = resolve_models(args.models) if args.models else ([], [])
     if missing:
         print(f"aerovis-eval: compare: no weights installed for {', '.join(missing)} (aerovis_train/weights/<name>.pt): left out; "

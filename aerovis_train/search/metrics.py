@@ -23,12 +23,11 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 import time
 from pathlib import Path
 from typing import Any
 
-from aerovis_slam.environment import software_versions
+from aerovis_slam.environment import host_description, software_versions
 from aerovis_slam.fileio import atomic_write_json, atomic_write_text
 
 METRICS_FORMAT = "aerovis-metrics/1"
@@ -188,7 +187,7 @@ def job_metrics(model, model_cfg: dict, *, val: dict | None, overrides: list[str
         "latency_ms": None,
         "latency": None,
         "latency_error": None,
-        "host": {"machine": platform.machine(), "processor": platform.processor() or None, "cpus": os.cpu_count()},
+        "host": host_description(),
         "environment": software_versions(training=True),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
