@@ -347,28 +347,32 @@ def test_velocity_change_initialisation(span_s, starts):
 
 
 # -- the estimator on exact data -------------------------------------------------------------------
+def _handheld_tracking_setup():
+    """A 1.2 s handheld trajectory of the DAVIS stereo rig with its noisy IMU, for the tracking tests:
+    (trajectory, default SlamConfig, StereoCameras, ImuStream, preintegration params, T_gt(t) -> (4, 4) T_world_body)."""
+    spec = SequenceSpec("est", rig="davis240_stereo", trajectory="handheld", trajectory_seed=7, scene_seed=7, duration_s=1.2)
+    sim = Simulator(spec)
+    traj = sim.trajectory
+    cams = StereoCameras.from_rig(sim.rig, max_width=424, max_height=240, size_multiple=1)
+
+    def T_gt(t):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = traj.rotation(np.array([t]))[0], traj.position(np.array([t]))[0]
+        return T
+
+    return traj, SlamConfig(), cams, ImuStream(sim.imu()), preintegration_params(sim.rig.imu), T_gt
+
+
 def test_smoother_and_tracking_on_exact_observations():
     """Exact observations (0.5 px noise) of landmarks that start 5 cm off (as from stereo) and the
     simulator's noisy DAVIS IMU: the keyframe smoother plus the per-frame tracking follow the ground
     truth. Position and yaw are unobservable in visual-inertial odometry, so the estimate drifts:
     measured 1.2 cm (max) and 0.27 deg over this 1 s, 1.5 m handheld path; the bounds (2 cm, 0.5 deg,
     ~1.3 % of the path) fail for a wrong extrinsic, IMU convention or marginalisation (tens of cm)."""
-    spec = SequenceSpec("est", rig="davis240_stereo", trajectory="handheld", trajectory_seed=7, scene_seed=7, duration_s=1.2)
-    sim = Simulator(spec)
-    traj = sim.trajectory
-    cfg = SlamConfig()
-    cams = StereoCameras.from_rig(sim.rig, max_width=424, max_height=240, size_multiple=1)
-    stream = ImuStream(sim.imu())
-    params = preintegration_params(sim.rig.imu)
+    traj, cfg, cams, stream, params, T_gt = _handheld_tracking_setup()
     rng = np.random.default_rng(0)
     P = traj.position(np.linspace(0, 1.2, 20))
     lms = rng.uniform(P.min(0) - 4, P.max(0) + 4, (2500, 3))
-
-    def T_gt(t):
-        T = np.eye(4)
-        T[:3, :3] = traj.rotation(np.array([t]))[0]
-        T[:3, 3] = traj.position(np.array([t]))[0]
-        return T
 
     def observe(T):
         parts = []
@@ -417,20 +421,9 @@ def test_refit_takes_vision_over_an_overconfident_keyframe_prior():
     rejects most of them (measured 5 kept, 19.5 cm off). Held as after a restart (3 cm, 0.5 m/s)
     the keyframe gives way and the fit keeps all 20, within 2 cm (0.5 px at 2 m is ~0.5 cm per
     observation). With a consistent prior, or without loose sigmas, there is no second fit."""
-    spec = SequenceSpec("est", rig="davis240_stereo", trajectory="handheld", trajectory_seed=7, scene_seed=7, duration_s=1.2)
-    sim = Simulator(spec)
-    traj = sim.trajectory
-    cfg = SlamConfig()
-    cams = StereoCameras.from_rig(sim.rig, max_width=424, max_height=240, size_multiple=1)
-    stream = ImuStream(sim.imu())
-    params = preintegration_params(sim.rig.imu)
+    traj, cfg, cams, stream, params, T_gt = _handheld_tracking_setup()
     rng = np.random.default_rng(0)
     t0, t1 = 0.3, 0.5
-
-    def T_gt(t):
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = traj.rotation(np.array([t]))[0], traj.position(np.array([t]))[0]
-        return T
 
     T1 = T_gt(t1)
     cam0 = cams.cams[0]
