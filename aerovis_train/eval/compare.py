@@ -294,7 +294,7 @@ def add_parser(sub) -> None:
 def main_compare(args, argv: list[str] | None) -> int:
     """Run ``aerovis-eval compare`` with parsed ``args``: JSON lines on stdout, the table on stderr."""
     import os
-    
+
     from aerovis_train.search.metrics import write_json, write_text
 
     from aerovis_slam.environment import host_description, software_versions
