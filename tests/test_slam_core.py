@@ -17,7 +17,8 @@ from aerovis_slam.measurements import ImuSamples, PoseSamples
 from aerovis_slam.sim import SequenceSpec, Simulator, write_sequence
 from aerovis_slam.sim.cache import ensure_preset
 from aerovis_slam.sim.rig import load_rig
-from aerovis_slam.slam.backend import KeyframeSmoother, NavEstimate, Observations, track_frame, track_frame_or_refit
+from aerovis_slam.slam.backend import (KeyframeSmoother, NavEstimate, Observations, loose_kf_sigmas, track_frame,
+                                      track_frame_or_refit)
 from aerovis_slam.slam.cameras import StereoCameras
 from aerovis_slam.slam.config import SlamConfig, load_config
 from aerovis_slam.slam.detectors import StereoClassicalDetector
@@ -441,7 +442,7 @@ def test_refit_takes_vision_over_an_overconfident_keyframe_prior():
     assert len(obs) == 20
     pim = new_preintegration(params)
     stream.integrate(pim, int(t0 * 1e6), int(t1 * 1e6))
-    loose = (0.01, 0.03, cfg.tracking.recovery_velocity_sigma)
+    loose = loose_kf_sigmas(cfg.tracking.recovery_velocity_sigma)  # what the runtime's refit uses
 
     def fits(velocity_error):
         kf = NavEstimate(T_gt(t0), traj.position(np.array([t0]), 1)[0] + velocity_error, gtsam.imuBias.ConstantBias())

@@ -481,6 +481,13 @@ class TrackResult:
 TRACKING_KF_SIGMAS = (0.003, 0.01, 0.05)
 
 
+def loose_kf_sigmas(velocity_sigma: float) -> tuple[float, float, float]:
+    """Tracking's keyframe priors when the keyframe state is not to be trusted tightly (after a
+    restart, and for :func:`track_frame_or_refit`'s second fit): 0.01 rad, 3 cm and
+    ``velocity_sigma`` m/s (``tracking.recovery_velocity_sigma``)."""
+    return (0.01, 0.03, float(velocity_sigma))
+
+
 def track_frame(cams: StereoCameras, cfg: BackendConfig, kf_state: NavEstimate,
                 pim: gtsam.PreintegratedCombinedMeasurements, guess: NavEstimate, obs: Observations,
                 points_world: np.ndarray, *, max_reproj_px: float, kf_sigmas=TRACKING_KF_SIGMAS,

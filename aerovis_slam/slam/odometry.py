@@ -45,7 +45,7 @@ import numpy as np
 from ..calib import ImuNoise
 from ..geometry import invert_T, transform_points
 from ..keypoints import Keypoints, match_keypoints
-from .backend import (TRACKING_KF_SIGMAS, KeyframeSmoother, NavEstimate, Observations, track_age_shapes,
+from .backend import (TRACKING_KF_SIGMAS, KeyframeSmoother, NavEstimate, Observations, loose_kf_sigmas, track_age_shapes,
                       track_frame_or_refit)
 from .cameras import StereoCameras
 from .config import SlamConfig
@@ -374,7 +374,7 @@ class StereoInertialOdometry:
                     use = spread_subset(obs.xy, cfg.backend.tracking_max_observations, cfg.keyframes.cell_px,
                                         self.cams.left.width)
                     # after a restart the keyframe's velocity is not converged: hold it loosely
-                    recovery = (0.01, 0.03, cfg.tracking.recovery_velocity_sigma)
+                    recovery = loose_kf_sigmas(cfg.tracking.recovery_velocity_sigma)
                     tight = TRACKING_KF_SIGMAS if self.recovery_kfs == 0 else recovery
                     # vision against the keyframe's IMU prediction: see tracking.refit_on_disagreement
                     refit = recovery if (cfg.tracking.refit_on_disagreement and visual and self.recovery_kfs == 0) else None
