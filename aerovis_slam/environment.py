@@ -20,7 +20,7 @@ from . import __version__
 
 #: distributions whose version moves the runtime's figures (the runtime's own dependencies)
 RUNTIME_DISTRIBUTIONS = ("numpy", "opencv-python-headless", "opencv-python", "onnxruntime", "onnxruntime-gpu", "gtsam", "scipy",
-                         "numba", "evo", "h5py")
+                         "numba", "evo", "h5py", "hdf5plugin")
 #: distributions that move training and evaluation figures on top of those
 TRAINING_DISTRIBUTIONS = ("torch", "lightning", "kornia", "onnx", "hydra-core", "torchao")
 

@@ -1,6 +1,7 @@
 """``aerovis-bench``: performance benchmarks, one JSON line each (never timed tests).
 
     aerovis-bench mcts     # event ingest and MCTS_Ne against a memory-traffic floor (one core)
+    aerovis-bench read     # event reading of a canonical sequence, per compression (what a replay keeps up with)
     aerovis-bench sim      # simulator speed for a 10 s stereo sequence at 240x320
     aerovis-bench train    # training samples/s and data-wait fraction (superlite, superevent_plus)
     aerovis-bench detector BUNDLE [BUNDLE...]   # ONNX Runtime latency of model bundles, one line per bundle
@@ -20,6 +21,8 @@ def main(argv: list[str] | None = None) -> int:
     sub = ap.add_subparsers(dest="command", required=True)
     p_mcts = sub.add_parser("mcts", help="event ingest rate and MCTS_Ne time vs. memory floor, on one core")
     p_mcts.add_argument("--events", type=int, default=10_000_000)
+    p_read = sub.add_parser("read", help="stereo event reading rate of a canonical sequence, Blosc-LZ4 against gzip, in one run")
+    p_read.add_argument("--events", type=int, default=6_000_000, help="events per camera")
     sub.add_parser("sim", help="simulate a 10 s stereo sequence at 240x320 with handheld motion")
     p_train = sub.add_parser("train", help="training samples/s of superlite and superevent_plus, and the data-wait fraction")
     p_train.add_argument("--steps", type=int, default=12,
@@ -39,6 +42,10 @@ def main(argv: list[str] | None = None) -> int:
         from aerovis_slam.benchmarks import bench_mcts
 
         result = bench_mcts(n_events=args.events)
+    elif args.command == "read":
+        from aerovis_slam.benchmarks import bench_read
+
+        result = bench_read(n_events=args.events)
     elif args.command == "sim":
         from aerovis_slam.sim.bench import run_sim_benchmark
 

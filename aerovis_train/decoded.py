@@ -1,9 +1,10 @@
 """A decoded, memory-mapped copy of the sequences a training run reads (``data.event_cache``).
 
-The canonical files keep events, frames and depth gzip-compressed in 64k-event chunks (small on
-disk, fast to stream once). A training pair reads two short windows at random places of random
+The canonical files keep events, frames and depth compressed in 64k-event chunks (small on disk,
+fast to stream once). A training pair reads two short windows at random places of random
 sequences: about half of a loader worker's time went into h5py decompressing chunks for ~80k events
-per view (measured: 23.6 ms per pair on this box, 45 % of it in HDF5 reads), and on a GPU the loader
+per view (measured with gzip-compressed events: 23.6 ms per pair on this box, 45 % of it in HDF5
+reads; the events are Blosc-LZ4 now, which decodes ~3.5x faster), and on a GPU the loader
 is the bottleneck. Here each sequence's event arrays, frames and depth maps are written once as
 plain ``.npy`` files and memory-mapped, so every worker reads them through the shared page cache.
 No library does this for HDF5 (h5py's chunk cache is per process and per dataset, and did not help:

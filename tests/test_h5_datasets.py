@@ -24,13 +24,13 @@ def _ms_to_idx(t):
     return np.searchsorted(t, np.arange(0, t[-1] // 1000 + 2) * 1000, side="left").astype(np.uint64)
 
 
-def write_dsec(path, n=4000, seed=0, t_offset=49_599_300_523):
+def write_dsec(path, n=4000, seed=0, t_offset=49_599_300_523, compression="gzip"):
     t, x, y, p = _events(n, 640, 480, seed)
     path.parent.mkdir(parents=True, exist_ok=True)
     with h5py.File(path, "w") as f:
         g = f.create_group("events")
         for k, v in dict(t=t.astype(np.uint32), x=x, y=y, p=p).items():  # DSEC stores t as uint32 relative µs
-            g.create_dataset(k, data=v, chunks=(512,), compression="gzip")
+            g.create_dataset(k, data=v, chunks=(512,), compression=compression)
         f.create_dataset("ms_to_idx", data=_ms_to_idx(t))
         f.create_dataset("t_offset", data=np.int64(t_offset))
     return t + t_offset, x, y, p
@@ -158,14 +158,21 @@ def test_bad_input(tmp_path):
         _all(H5EventsRecording(trunc), "cam0")
 
 
-def test_missing_filter_says_install_hdf5plugin(tmp_path):
-    zstd = 32015  # the HDF5 filter id of Zstandard (DSEC), not built into h5py
-    if h5py.h5z.filter_avail(zstd):
-        pytest.skip("zstd filter is available here (hdf5plugin installed)")
-    path = tmp_path / "zstd.h5"
+def test_dsec_zstd_files_read_through_hdf5plugin(tmp_path):
+    zstd = 32015  # the HDF5 filter id of Zstandard (DSEC's files), registered by hdf5plugin
+    assert h5py.h5z.filter_avail(zstd)
+    ref = write_dsec(tmp_path / "zstd" / "events.h5", seed=5, compression=zstd)
+    with H5EventsRecording(tmp_path / "zstd" / "events.h5") as rec:
+        _same(_all(rec, "cam0"), ref)
+
+
+def test_missing_filter_names_the_filter(tmp_path):
+    lzo = 305  # the HDF5 filter id of LZO: registered, but in neither h5py nor hdf5plugin
+    assert not h5py.h5z.filter_avail(lzo)
+    path = tmp_path / "lzo.h5"
     with h5py.File(path, "w") as f:
         for k in ("t", "x", "y", "p"):
             # Nothing is written, so creating the dataset needs no filter; reading it would.
-            f.create_dataset(f"events/{k}", shape=(10,), dtype=np.int64, chunks=(5,), compression=zstd, allow_unknown_filter=True)
-    with pytest.raises(DataError, match=r"zstd.h5: dataset /events/t is compressed with HDF5 filter 32015.*hdf5plugin"):
+            f.create_dataset(f"events/{k}", shape=(10,), dtype=np.int64, chunks=(5,), compression=lzo, allow_unknown_filter=True)
+    with pytest.raises(DataError, match=r"lzo.h5: dataset /events/t is compressed with HDF5 filter 305.*not among hdf5plugin"):
         H5EventsRecording(path)

@@ -31,10 +31,7 @@ from ..events import EventArray
 from .sequence import FORMAT_NAME as CANONICAL_FORMAT
 from .source import Recording, register_format
 
-try:  # registers the blosc / zstd / lz4 ... filters that DSEC and TUM-VIE use
-    import hdf5plugin  # noqa: F401
-except ImportError:  # optional: files without those filters read fine without it
-    hdf5plugin = None
+import hdf5plugin  # noqa: F401  registers the blosc / zstd / lz4 ... filters that DSEC and TUM-VIE use
 
 FORMAT_NAME = "event-h5"
 #: Known sensor sizes (width, height) by layout, used when a file stores none.
@@ -63,9 +60,9 @@ def _check_filters(path: Path, ds: h5py.Dataset) -> None:
         code, _flags, _values, name = plist.get_filter(i)
         if not h5py.h5z.filter_avail(code):
             fname = name.decode(errors="replace") if isinstance(name, bytes) else str(name)
-            hint = "install hdf5plugin (`pip install hdf5plugin`)" if hdf5plugin is None else "this filter is not in the installed hdf5plugin"
             raise DataError(path, f"dataset {ds.name} is compressed with HDF5 filter {code} ({fname or 'unknown'}), "
-                                  f"which is not available: {hint}")
+                                  f"which is not available: it is not among hdf5plugin {hdf5plugin.version}'s filters "
+                                  "(https://github.com/HDFGroup/hdf5_plugins lists where others come from)")
 
 
 class _CameraFile:
