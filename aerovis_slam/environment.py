@@ -56,27 +56,59 @@ def software_versions(*, training: bool = False) -> dict:
 
     Returns:
         ``{"python": "3.11.9", "platform": "Linux-...-x86_64", "aerovis": "0.1.0", "commit": sha or None,
-        "uncommitted_changes": bool or None, "packages": {distribution: version}}``, with only the
-        installed distributions in ``packages`` (JSON-ready).
+        "uncommitted_changes": bool or None, "packages": {distribution: version}, "host": host_description()}``,
+        with only the installed distributions in ``packages`` (JSON-ready).
     """
     names = RUNTIME_DISTRIBUTIONS + (TRAINING_DISTRIBUTIONS if training else ())
     packages = {n: v for n in names if (v := _distribution_version(n)) is not None}
     commit, dirty = _source_commit()
     return {"python": platform.python_version(), "platform": platform.platform(), "aerovis": __version__,
-            "commit": commit, "uncommitted_changes": dirty, "packages": packages}
+            "commit": commit, "uncommitted_changes": dirty, "packages": packages, "host": host_description()}
+
+
+#: SIMD levels, widest first: the first one /proc/cpuinfo lists is recorded
+_SIMD_LEVELS = ("avx512f", "avx2", "avx", "sse4_2", "neon", "asimd")
+
+
+def _cpuinfo(path: str = "/proc/cpuinfo") -> tuple[str | None, str | None]:
+    """(CPU model name, widest SIMD level) from Linux's cpuinfo, or (None, None) elsewhere."""
+    try:
+        text = Path(path).read_text(errors="replace")
+    except OSError:
+        return None, None
+    model, flags = None, set()
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        key = key.strip().lower()
+        if model is None and key in ("model name", "hardware", "cpu model"):
+            model = value.strip() or None
+        elif not flags and key in ("flags", "features"):
+            flags = set(value.split())
+    return model, next((level for level in _SIMD_LEVELS if level in flags), None)
 
 
 def host_description() -> dict:
-    """The machine a latency was measured on: ``{"machine": "x86_64", "processor": str or None, "cpus": int}``
-    (the search's job metrics and ``aerovis-eval compare`` record it beside their timings)."""
+    """The machine figures were measured on: ``{"machine": "x86_64", "processor": str or None,
+    "cpu_model": str or None, "simd": "avx512f" | "avx2" | ... or None, "cpus": int}``.
+
+    Latencies depend on it, and so do sync SLAM runs: with the same library versions, two machines
+    gave different ATE on four bench sequences of seven (docs/slam.md, "The full bench at 3eb9c48"),
+    as vectorised kernels round differently."""
     import os
 
-    return {"machine": platform.machine(), "processor": platform.processor() or None, "cpus": os.cpu_count()}
+    model, simd = _cpuinfo()
+    return {"machine": platform.machine(), "processor": platform.processor() or None, "cpu_model": model, "simd": simd,
+            "cpus": os.cpu_count()}
 
 
 def describe(versions: dict) -> str:
-    """One line for a table's footer: ``aerovis 0.1.0 (08f0e21), python 3.11.9, numpy 2.4.6, ...``."""
+    """One line for a table's footer: ``aerovis 0.1.0 (08f0e21), python 3.11.9, numpy 2.4.6, ...; on CPU (avx2, 2 cpus)``."""
     commit = versions.get("commit")
     head = f"aerovis {versions.get('aerovis')}" + (f" ({commit[:7]}{'+changes' if versions.get('uncommitted_changes') else ''})"
                                                    if commit else "")
-    return ", ".join([head, f"python {versions.get('python')}"] + [f"{k} {v}" for k, v in versions.get("packages", {}).items()])
+    line = ", ".join([head, f"python {versions.get('python')}"] + [f"{k} {v}" for k, v in versions.get("packages", {}).items()])
+    host = versions.get("host") or {}
+    if host.get("cpu_model") or host.get("simd"):
+        details = ", ".join(str(x) for x in (host.get("simd"), f"{host.get('cpus')} cpus" if host.get("cpus") else None) if x)
+        line += f"; on {host.get('cpu_model') or host.get('machine')}" + (f" ({details})" if details else "")
+    return line

@@ -971,3 +971,20 @@ def test_software_versions_name_the_installed_distributions(monkeypatch):
     line = environment.describe({"aerovis": "0.1.0", "commit": "0123456789" * 4, "uncommitted_changes": True, "python": "3.11.7",
                                  "packages": {"numpy": "2.4.6"}})
     assert line == "aerovis 0.1.0 (0123456+changes), python 3.11.7, numpy 2.4.6"
+    host = {"machine": "x86_64", "cpu_model": "Intel(R) Xeon(R) Processor", "simd": "avx512f", "cpus": 2}
+    assert environment.describe({"aerovis": "0.1.0", "python": "3.11.7", "packages": {}, "host": host}) == \
+        "aerovis 0.1.0, python 3.11.7; on Intel(R) Xeon(R) Processor (avx512f, 2 cpus)"
+
+
+def test_cpuinfo_names_the_model_and_the_widest_simd_level(tmp_path):
+    from aerovis_slam import environment
+
+    x86 = tmp_path / "x86"
+    x86.write_text("processor\t: 0\nmodel name\t: AMD EPYC 7B13\nflags\t\t: fpu sse4_2 avx avx2 fma\n\n"
+                   "processor\t: 1\nmodel name\t: AMD EPYC 7B13\nflags\t\t: fpu sse4_2 avx avx2 fma\n")
+    assert environment._cpuinfo(str(x86)) == ("AMD EPYC 7B13", "avx2")
+    arm = tmp_path / "arm"
+    arm.write_text("processor\t: 0\nFeatures\t: fp asimd evtstrm aes\nCPU implementer\t: 0x41\n")
+    assert environment._cpuinfo(str(arm)) == (None, "asimd")
+    assert environment._cpuinfo(str(tmp_path / "absent")) == (None, None)
+    assert set(environment.software_versions()["host"]) == {"machine", "processor", "cpu_model", "simd", "cpus"}

@@ -493,7 +493,7 @@ def format_table(rows: list[dict], *, software: dict | None = None) -> str:
             lines += ["", "The same runs' final trajectories (`traj_final.txt`): mean (min-max) and median ATE [% of path].", ""]
             lines += spread_table("ate_pct_final")
     if software is not None:
-        lines += ["", f"Measured with {describe(software)}; figures move when these versions change (`environment.json`)."]
+        lines += ["", f"Measured with {describe(software)}; figures move when these versions or the machine change (`environment.json`)."]
     return "\n".join(lines) + "\n"
 
 
