@@ -80,6 +80,7 @@ def test_event_compression_choices_read_back_the_same(tmp_path):
         with SequenceWriter(paths[codec], sensor_sizes={"cam0": (32, 24)}, event_compression=codec) as w:
             w.add_events("cam0", ev)
         with Sequence(paths[codec]) as s:
+            assert s.event_compression("cam0") == codec and s.summary()["cameras"]["cam0"]["event_compression"] == codec
             back = s.events("cam0")
             np.testing.assert_array_equal(back.t, ev.t)
             np.testing.assert_array_equal(back.x, ev.x)

@@ -366,14 +366,29 @@ class Sequence:
         g = self._file[f"{kind}/{camera_key(cam)}"]
         return g["image" if kind == "frames" else "depth"][index]
 
+    def event_compression(self, cam: str | int) -> str | None:
+        """The filter of ``cam``'s event timestamps: a key of :data:`EVENT_COMPRESSION` when it is
+        one of those, else HDF5's filter names joined by ``+``; None when uncompressed or eventless."""
+        g = self._group(cam)
+        if "t" not in g:
+            return None
+        filters = {str(k) for k in g["t"]._filters if str(k) not in ("shuffle", "fletcher32")}
+        if not filters:
+            return None
+        for name, spec in EVENT_COMPRESSION.items():
+            if filters == {str(spec["compression"])}:
+                return name
+        return "+".join(sorted(filters))
+
     def summary(self) -> dict:
-        """JSON-ready overview: cameras, sizes, event counts and time ranges, IMU and GT counts."""
+        """JSON-ready overview: cameras, sizes, event counts, time ranges and event compression, IMU and GT counts."""
         cams = {}
         for cam in self.cameras:
             w, h = self.sensor_size(cam)
             tr = self.time_range(cam)
             cams[cam] = {"width": w, "height": h, "events": self.num_events(cam),
-                         "t_first_us": tr[0] if tr else None, "t_last_us": tr[1] if tr else None}
+                         "t_first_us": tr[0] if tr else None, "t_last_us": tr[1] if tr else None,
+                         "event_compression": self.event_compression(cam)}
             ft = self.frame_times(cam)
             if ft is not None:
                 cams[cam]["frames"] = int(len(ft))
