@@ -28,7 +28,7 @@ import numpy as np
 
 from ..errors import DataError
 from ..events import EventArray
-from .sequence import FORMAT_NAME as CANONICAL_FORMAT
+from .sequence import FORMAT_NAME as CANONICAL_FORMAT, dataset_filters
 from .source import Recording, register_format
 
 import hdf5plugin  # noqa: F401  registers the blosc / zstd / lz4 ... filters that DSEC and TUM-VIE use
@@ -55,11 +55,8 @@ def _layout(f: h5py.File, group: h5py.Group) -> str:
 
 def _check_filters(path: Path, ds: h5py.Dataset) -> None:
     """Raise a clear DataError if ``ds`` needs an HDF5 filter that is not registered."""
-    plist = ds.id.get_create_plist()
-    for i in range(plist.get_nfilters()):
-        code, _flags, _values, name = plist.get_filter(i)
+    for code, fname in dataset_filters(ds):
         if not h5py.h5z.filter_avail(code):
-            fname = name.decode(errors="replace") if isinstance(name, bytes) else str(name)
             raise DataError(path, f"dataset {ds.name} is compressed with HDF5 filter {code} ({fname or 'unknown'}), "
                                   f"which is not available: it is not among hdf5plugin {hdf5plugin.version}'s filters "
                                   "(https://github.com/HDFGroup/hdf5_plugins lists where others come from)")

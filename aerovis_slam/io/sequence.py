@@ -56,6 +56,18 @@ EVENT_COMPRESSION = {
     "blosc-lz4": hdf5plugin.Blosc(cname="lz4", clevel=5, shuffle=hdf5plugin.Blosc.BITSHUFFLE),
     "gzip": dict(_COMPRESSION),
 }
+#: the compressing HDF5 filter of each :data:`EVENT_COMPRESSION` choice, by id
+_EVENT_COMPRESSION_FILTER = {h5py.h5z.FILTER_DEFLATE: "gzip", hdf5plugin.BLOSC_ID: "blosc-lz4"}
+
+
+def dataset_filters(ds: h5py.Dataset) -> list[tuple[int, str]]:
+    """The HDF5 filter pipeline of ``ds``: ``(filter id, name stored in the file)`` in order."""
+    plist = ds.id.get_create_plist()
+    out = []
+    for i in range(plist.get_nfilters()):
+        code, _flags, _values, name = plist.get_filter(i)
+        out.append((int(code), name.decode(errors="replace") if isinstance(name, bytes) else str(name)))
+    return out
 
 
 def camera_key(cam: str | int) -> str:
@@ -372,13 +384,13 @@ class Sequence:
         g = self._group(cam)
         if "t" not in g:
             return None
-        filters = {str(k) for k in g["t"]._filters if str(k) not in ("shuffle", "fletcher32")}
-        if not filters:
+        pipeline = [(code, name) for code, name in dataset_filters(g["t"])
+                    if code not in (h5py.h5z.FILTER_SHUFFLE, h5py.h5z.FILTER_FLETCHER32)]
+        if not pipeline:
             return None
-        for name, spec in EVENT_COMPRESSION.items():
-            if filters == {str(spec["compression"])}:
-                return name
-        return "+".join(sorted(filters))
+        if len(pipeline) == 1 and pipeline[0][0] in _EVENT_COMPRESSION_FILTER:
+            return _EVENT_COMPRESSION_FILTER[pipeline[0][0]]
+        return "+".join(name or str(code) for code, name in pipeline)
 
     def summary(self) -> dict:
         """JSON-ready overview: cameras, sizes, event counts, time ranges and event compression, IMU and GT counts."""
