@@ -56,14 +56,34 @@ def software_versions(*, training: bool = False) -> dict:
 
     Returns:
         ``{"python": "3.11.9", "platform": "Linux-...-x86_64", "aerovis": "0.1.0", "commit": sha or None,
-        "uncommitted_changes": bool or None, "packages": {distribution: version}, "host": host_description()}``,
-        with only the installed distributions in ``packages`` (JSON-ready).
+        "uncommitted_changes": bool or None, "packages": {distribution: version}, "host": host_description(),
+        "blas": blas_libraries()}``, with only the installed distributions in ``packages`` (JSON-ready).
     """
     names = RUNTIME_DISTRIBUTIONS + (TRAINING_DISTRIBUTIONS if training else ())
     packages = {n: v for n in names if (v := _distribution_version(n)) is not None}
     commit, dirty = _source_commit()
     return {"python": platform.python_version(), "platform": platform.platform(), "aerovis": __version__,
-            "commit": commit, "uncommitted_changes": dirty, "packages": packages, "host": host_description()}
+            "commit": commit, "uncommitted_changes": dirty, "packages": packages, "host": host_description(),
+            "blas": blas_libraries()}
+
+
+def blas_libraries() -> list[dict]:
+    """The BLAS libraries numpy (and whatever else is loaded) calls, as threadpoolctl finds them:
+    ``[{"library": "openblas", "version": "0.3.31...", "architecture": "SkylakeX", "threading_layer":
+    "pthreads", "num_threads": 2}]`` (empty when threadpoolctl is missing).
+
+    OpenBLAS picks its kernels by CPU at load time (``architecture``), one more reason figures move
+    between machines; ``num_threads`` is the setting at the time of the call (a SLAM run holds it at
+    ``SlamConfig.blas_threads``).
+    """
+    try:
+        import numpy  # noqa: F401  (loads the BLAS that threadpoolctl then finds)
+        from threadpoolctl import threadpool_info
+    except ImportError:
+        return []
+    return [{"library": i.get("internal_api"), "version": i.get("version"), "architecture": i.get("architecture"),
+             "threading_layer": i.get("threading_layer"), "num_threads": i.get("num_threads")}
+            for i in threadpool_info() if i.get("user_api") == "blas"]
 
 
 #: SIMD levels, widest first: the first one /proc/cpuinfo lists is recorded
@@ -102,11 +122,14 @@ def host_description() -> dict:
 
 
 def describe(versions: dict) -> str:
-    """One line for a table's footer: ``aerovis 0.1.0 (08f0e21), python 3.11.9, numpy 2.4.6, ...; on CPU (avx2, 2 cpus)``."""
+    """One line for a table's footer: ``aerovis 0.1.0 (08f0e21), python 3.11.9, numpy 2.4.6, ..., openblas 0.3.31
+    (SkylakeX); on CPU (avx2, 2 cpus)``."""
     commit = versions.get("commit")
     head = f"aerovis {versions.get('aerovis')}" + (f" ({commit[:7]}{'+changes' if versions.get('uncommitted_changes') else ''})"
                                                    if commit else "")
-    line = ", ".join([head, f"python {versions.get('python')}"] + [f"{k} {v}" for k, v in versions.get("packages", {}).items()])
+    line = ", ".join([head, f"python {versions.get('python')}"] + [f"{k} {v}" for k, v in versions.get("packages", {}).items()]
+                     + [f"{b.get('library')} {b.get('version')}" + (f" ({b['architecture']})" if b.get("architecture") else "")
+                        for b in versions.get("blas", [])])
     host = versions.get("host") or {}
     if host.get("cpu_model") or host.get("simd"):
         details = ", ".join(str(x) for x in (host.get("simd"), f"{host.get('cpus')} cpus" if host.get("cpus") else None) if x)

@@ -1451,3 +1451,37 @@ def test_track_refiner_keeps_the_detection_where_the_anchor_is_not_found():
     ref.refine(Observations(np.arange(3), np.zeros(3, np.int8), xy + 2.0))
     assert ref.stats.rejected == 3  # the old anchors expired: nothing aligned, three new anchors
     assert all(ref.anchors[(i, 0)][1].tolist() == (xy[i] + 2.0).tolist() for i in range(3))
+
+
+def test_a_run_holds_numpy_blas_at_its_configured_threads(small_flight, tmp_path):
+    """``blas_threads`` (default 1) holds every loaded BLAS at that many threads while the run
+    lasts, the detector's thread included, and the setting is restored afterwards; null leaves it
+    alone. (Why: OpenBLAS workers busy-wait after a product and take the cores ONNX Runtime needs.)"""
+    from threadpoolctl import threadpool_info
+
+    def blas_threads():
+        return {i["filepath"]: i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
+
+    before = blas_threads()
+    assert before  # numpy's OpenBLAS is loaded, so the check below means something
+
+    class Recording(StereoClassicalDetector):
+        def detect(self, batch, **kw):
+            seen.append(blas_threads())
+            stop.set()  # one frame is enough
+            return super().detect(batch, **kw)
+
+    for setting, expected in ((1, {k: 1 for k in before}), (None, before)):
+        seen, stop = [], threading.Event()
+        cfg = load_config("accurate")
+        cfg.blas_threads = setting
+        res = run_slam(small_flight, Recording("orb", 100), cfg, mode="sync", progress=False, stop_event=stop)
+        assert not res.complete and res.status.startswith("stopped")
+        assert seen and all({k: v[k] for k in before} == expected for v in seen)
+        assert blas_threads() == before
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("blas_threads: 0\n")
+    with pytest.raises(DataError, match="blas_threads"):
+        load_config(bad)
+    bad.write_text("blas_threads: null\n")
+    assert load_config(bad).blas_threads is None

@@ -974,6 +974,9 @@ def test_software_versions_name_the_installed_distributions(monkeypatch):
     host = {"machine": "x86_64", "cpu_model": "Intel(R) Xeon(R) Processor", "simd": "avx512f", "cpus": 2}
     assert environment.describe({"aerovis": "0.1.0", "python": "3.11.7", "packages": {}, "host": host}) == \
         "aerovis 0.1.0, python 3.11.7; on Intel(R) Xeon(R) Processor (avx512f, 2 cpus)"
+    blas = [{"library": "openblas", "version": "0.3.31", "architecture": "SkylakeX", "num_threads": 2}]
+    assert environment.describe({"aerovis": "0.1.0", "python": "3.11.7", "packages": {}, "blas": blas}) == \
+        "aerovis 0.1.0, python 3.11.7, openblas 0.3.31 (SkylakeX)"
 
 
 def test_cpuinfo_names_the_model_and_the_widest_simd_level(tmp_path):

@@ -382,6 +382,13 @@ class SlamConfig:
         mode: the mode this setting is meant for (``sync`` | ``async`` | ``live``); the caller may override.
         rate_hz: sync-mode processing rate (and the live-mode rate of a sync setting).
         max_rate_hz: async/live cap: the frontend waits instead of re-processing nearly the same state.
+        blas_threads: threads of numpy's BLAS (OpenBLAS) while the run lasts (None: the library's own,
+            one per core). 1 by default: the detector's ONNX Runtime pool takes every core, and the
+            runtime's matrix products are small (descriptor similarities of a few hundred
+            keypoints). After a multi-threaded product OpenBLAS's workers busy-wait for more work
+            and take cores from the next inference: on the 2-core box a stereo inference at 424x240
+            took 66 instead of 33 ms after 30 ms of products, and an async drone8_lit run
+            processed 7.5 poses/s with OpenBLAS's 2 threads and 11.6 with 1 (docs/slam.md).
         input, detector, matching, refinement, ransac, keyframes, backend, init, tracking: the sections above.
     """
 
@@ -389,6 +396,7 @@ class SlamConfig:
     mode: str = "sync"
     rate_hz: float = 50.0
     max_rate_hz: float = 100.0
+    blas_threads: int | None = 1
     input: InputConfig = field(default_factory=InputConfig)
     detector: DetectorConfig = field(default_factory=DetectorConfig)
     matching: MatchingConfig = field(default_factory=MatchingConfig)
@@ -451,6 +459,8 @@ def _validate(cfg: SlamConfig, path) -> None:
         raise DataError(path, f"mode must be one of {MODES}, got {cfg.mode!r}")
     if cfg.rate_hz <= 0 or cfg.max_rate_hz <= 0:
         raise DataError(path, f"rate_hz and max_rate_hz must be positive (got {cfg.rate_hz}, {cfg.max_rate_hz})")
+    if cfg.blas_threads is not None and not (isinstance(cfg.blas_threads, int) and cfg.blas_threads >= 1):
+        raise DataError(path, f"blas_threads must be a whole number >= 1 or null (the BLAS library's own), got {cfg.blas_threads!r}")
     if cfg.backend.robust not in ("huber", "cauchy"):
         raise DataError(path, f"backend.robust must be 'huber' or 'cauchy', got {cfg.backend.robust!r}")
     rc = cfg.refinement

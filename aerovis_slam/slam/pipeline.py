@@ -30,6 +30,7 @@ Example (a sketch; see ``aerovis-slam run``)::
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import threading
 import time
@@ -51,7 +52,7 @@ from .odometry import StereoInertialOdometry, WarningLog
 from .preprocessing import EventFeeder, EventReader, LivePreprocessor, observation_time
 from .trajectory import final_trajectory
 
-__all__ = ["SlamResult", "load_config", "run_slam"]
+__all__ = ["SlamResult", "blas_thread_limit", "load_config", "run_slam"]
 
 STAGES = ("preprocess", "mcts", "detector", "matching", "refine", "tracking", "keyframe", "backend", "loop", "total")
 
@@ -188,6 +189,30 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
         DataError: the sequence lacks what SLAM needs (calibration, IMU, a camera), bad mode, or
             frame slots that are not increasing or outside the recording.
     """
+    # process-wide while the run lasts (every thread's numpy), restored afterwards
+    with blas_thread_limit(config.blas_threads):
+        return _run_slam(sequence, detector, config, mode=mode, loop_closer=loop_closer, progress=progress,
+                         stop_event=stop_event, frame_slots=frame_slots, frame_caps=frame_caps)
+
+
+def blas_thread_limit(threads: int | None):
+    """Context manager: numpy's BLAS runs ``threads`` threads inside it (None: unchanged).
+
+    See ``SlamConfig.blas_threads`` for why the runtime uses one. threadpoolctl sets the limit
+    through the loaded BLAS library's own API (``openblas_set_num_threads``), which an environment
+    variable cannot do once numpy is imported.
+    """
+    if threads is None:
+        return contextlib.nullcontext()
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=int(threads), user_api="blas")
+
+
+def _run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | None, loop_closer,
+              progress: bool, stop_event: threading.Event | None, frame_slots: np.ndarray | None,
+              frame_caps: list[list[int]] | None) -> SlamResult:
+    """:func:`run_slam` without the BLAS thread limit."""
     path = Path(sequence)
     mode = mode or config.mode
     if mode not in MODES:
