@@ -153,3 +153,67 @@ def bench_read(n_events: int = 6_000_000, width: int = 424, height: int = 240, r
     result["target_mev_s"] = 70.0
     result["meets_target"] = bool(result["blosc-lz4"]["read_mev_s"] >= result["target_mev_s"])
     return result
+
+
+def bench_blas(bundle=None, *, height: int = 240, width: int = 424, products_ms: float = 30.0, repeats: int = 30,
+               warmup: int = 3) -> dict:
+    """What numpy's BLAS threads cost the detector between frames (``SlamConfig.blas_threads``), in one run.
+
+    Each repeat runs the runtime's descriptor products (:func:`~aerovis_slam.keypoints.cosine_similarity`
+    of 400 map and 250 frame int8 descriptors, as the frontend's matching does; as many as take about
+    ``products_ms`` with the BLAS's own threads), then one stereo inference of the bundle (default:
+    the shipped SuperLitE) at ``height`` x ``width``, timed. The BLAS's own threads, one thread, and
+    inference alone (no products: the floor) take turns within each repeat, so load from elsewhere
+    hits all three alike.
+
+    * ``infer_ms_p50``: per setting, the inference's median.
+    * ``products_ms_p50``: per setting, what the products themselves took.
+    * ``slowdown``: ``infer_ms_p50`` over the floor's. ``target_slowdown`` 1.1: with one BLAS thread
+      the detector should run as fast between frames as alone.
+    """
+    from .bundle import BundleDetector, default_bundle_path, synthetic_mcts
+    from .environment import blas_libraries
+    from .keypoints import cosine_similarity
+    from .slam.pipeline import blas_thread_limit
+
+    det = BundleDetector(bundle or default_bundle_path())
+    det.bundle.check_size(height, width)
+    x = synthetic_mcts(det.bundle, 2, height=height, width=width)
+    rng = np.random.default_rng(0)
+    dim = det.bundle.descriptor_dim
+    map_desc = rng.integers(-127, 128, (400, dim), dtype=np.int8)
+    frame_desc = rng.integers(-127, 128, (250, dim), dtype=np.int8)
+    own_threads = max((b["num_threads"] or 1 for b in blas_libraries()), default=None)
+
+    def products(n: int) -> float:
+        t0 = time.perf_counter()
+        for _ in range(n):
+            cosine_similarity(frame_desc, map_desc)
+        return (time.perf_counter() - t0) * 1e3
+
+    per_ms = max(products(50) / 50, 1e-3)
+    n_products = max(1, int(round(products_ms / per_ms)))
+    settings = {"blas_own_threads": None, "blas_1_thread": 1, "alone": "alone"}
+    infer: dict[str, list[float]] = {k: [] for k in settings}
+    prod: dict[str, list[float]] = {k: [] for k in settings if k != "alone"}
+    for r in range(warmup + repeats):
+        for key, threads in settings.items():
+            if threads == "alone":
+                det.dense(x)
+                if r >= warmup:
+                    infer[key].append(det.last_latency_ms)
+                continue
+            with blas_thread_limit(threads):
+                ms = products(n_products)
+                det.dense(x)
+            if r >= warmup:
+                prod[key].append(ms)
+                infer[key].append(det.last_latency_ms)
+    p50 = {k: round(float(np.median(v)), 2) for k, v in infer.items()}
+    result = {"benchmark": "blas", "bundle": str(det.bundle.path), "resolution": [width, height], "batch": 2,
+              "products_per_frame": n_products, "blas_own_threads": own_threads,
+              "infer_ms_p50": p50, "products_ms_p50": {k: round(float(np.median(v)), 2) for k, v in prod.items()},
+              "slowdown": {k: round(p50[k] / p50["alone"], 2) for k in prod}, "target_slowdown": 1.1,
+              "blas": blas_libraries()}
+    result["meets_target"] = bool(result["slowdown"]["blas_1_thread"] <= result["target_slowdown"])
+    return result

@@ -57,14 +57,16 @@ def software_versions(*, training: bool = False) -> dict:
     Returns:
         ``{"python": "3.11.9", "platform": "Linux-...-x86_64", "aerovis": "0.1.0", "commit": sha or None,
         "uncommitted_changes": bool or None, "packages": {distribution: version}, "host": host_description(),
-        "blas": blas_libraries()}``, with only the installed distributions in ``packages`` (JSON-ready).
+        "blas": blas_libraries() less num_threads}``, with only the installed distributions in ``packages``
+        (JSON-ready).
     """
     names = RUNTIME_DISTRIBUTIONS + (TRAINING_DISTRIBUTIONS if training else ())
     packages = {n: v for n in names if (v := _distribution_version(n)) is not None}
     commit, dirty = _source_commit()
     return {"python": platform.python_version(), "platform": platform.platform(), "aerovis": __version__,
             "commit": commit, "uncommitted_changes": dirty, "packages": packages, "host": host_description(),
-            "blas": blas_libraries()}
+            # without num_threads: a run holds it at SlamConfig.blas_threads, whatever it is when recorded
+            "blas": [{k: v for k, v in b.items() if k != "num_threads"} for b in blas_libraries()]}
 
 
 def blas_libraries() -> list[dict]:
@@ -81,9 +83,10 @@ def blas_libraries() -> list[dict]:
         from threadpoolctl import threadpool_info
     except ImportError:
         return []
-    return [{"library": i.get("internal_api"), "version": i.get("version"), "architecture": i.get("architecture"),
-             "threading_layer": i.get("threading_layer"), "num_threads": i.get("num_threads")}
-            for i in threadpool_info() if i.get("user_api") == "blas"]
+    found = [{"library": i.get("internal_api"), "version": i.get("version"), "architecture": i.get("architecture"),
+              "threading_layer": i.get("threading_layer"), "num_threads": i.get("num_threads")}
+             for i in threadpool_info() if i.get("user_api") == "blas"]
+    return sorted(found, key=lambda b: (str(b["library"]), str(b["version"])))  # load order varies between runs
 
 
 #: SIMD levels, widest first: the first one /proc/cpuinfo lists is recorded

@@ -5,8 +5,9 @@
     aerovis-bench sim      # simulator speed for a 10 s stereo sequence at 240x320
     aerovis-bench train    # training samples/s and data-wait fraction (superlite, superevent_plus)
     aerovis-bench detector BUNDLE [BUNDLE...]   # ONNX Runtime latency of model bundles, one line per bundle
+    aerovis-bench blas     # detector inference after the runtime's descriptor products: BLAS threads' cost
 
-Each subcommand imports only what it needs, so ``aerovis-bench mcts`` and ``detector`` run without torch.
+Each subcommand imports only what it needs, so ``aerovis-bench mcts``, ``detector`` and ``blas`` run without torch.
 """
 
 from __future__ import annotations
@@ -37,6 +38,11 @@ def main(argv: list[str] | None = None) -> int:
     p_det.add_argument("--threads", type=int, default=None, help="ONNX Runtime intra-op threads (default: its own, one per core)")
     p_det.add_argument("--height", type=int, default=None, help="measure at this height instead of each bundle's own")
     p_det.add_argument("--width", type=int, default=None, help="measure at this width instead of each bundle's own")
+    p_blas = sub.add_parser("blas", help="detector inference after the runtime's descriptor products, numpy's BLAS at its own "
+                                         "threads against one thread (SlamConfig.blas_threads), in one run")
+    p_blas.add_argument("--bundle", default=None, help="model bundle (default: the shipped SuperLitE)")
+    p_blas.add_argument("--repeats", type=int, default=30)
+    p_blas.add_argument("--products-ms", type=float, default=30.0, help="descriptor products between inferences (ms)")
     args = ap.parse_args(argv)
     if args.command == "mcts":
         from aerovis_slam.benchmarks import bench_mcts
@@ -46,6 +52,10 @@ def main(argv: list[str] | None = None) -> int:
         from aerovis_slam.benchmarks import bench_read
 
         result = bench_read(n_events=args.events)
+    elif args.command == "blas":
+        from aerovis_slam.benchmarks import bench_blas
+
+        result = bench_blas(args.bundle, repeats=args.repeats, products_ms=args.products_ms)
     elif args.command == "sim":
         from aerovis_slam.sim.bench import run_sim_benchmark
 

@@ -366,6 +366,19 @@ def test_bench_detector_prints_one_line_per_bundle(fp32_bundle, capsys):
         assert 0 < r["latency_ms_p50"] <= r["latency_ms_p90"] and r["total_ms_p50"] >= r["latency_ms_p50"]
 
 
+def test_bench_blas_times_inference_after_products_per_blas_setting(fp32_bundle):
+    from aerovis_slam.benchmarks import bench_blas
+
+    r = bench_blas(fp32_bundle, height=48, width=64, products_ms=2.0, repeats=3, warmup=1)
+    assert r["resolution"] == [64, 48] and r["products_per_frame"] >= 1
+    assert set(r["infer_ms_p50"]) == {"blas_own_threads", "blas_1_thread", "alone"}
+    assert all(v > 0 for v in r["infer_ms_p50"].values()) and all(v > 0 for v in r["products_ms_p50"].values())
+    for key, ratio in r["slowdown"].items():  # each against the floor measured in the same run (rounded to 0.01)
+        assert ratio == pytest.approx(r["infer_ms_p50"][key] / r["infer_ms_p50"]["alone"], abs=0.01)
+    assert r["meets_target"] == (r["slowdown"]["blas_1_thread"] <= 1.1)
+    assert r["blas"] and all(b["library"] and b["num_threads"] >= 1 for b in r["blas"])  # numpy's BLAS, found
+
+
 def test_eval_pose_takes_a_bundle(fp32_bundle, tiny, capsys):
     from aerovis_train.eval.cli import main as eval_main
 

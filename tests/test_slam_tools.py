@@ -962,6 +962,8 @@ def test_software_versions_name_the_installed_distributions(monkeypatch):
     assert v["packages"]["numpy"] == numpy.__version__ and "torch" not in v["packages"]
     assert v["python"].count(".") == 2 and v["aerovis"] == environment.__version__
     assert v["commit"] is None or len(v["commit"]) == 40
+    # numpy's BLAS is named, without the thread count (a run sets its own, SlamConfig.blas_threads)
+    assert v["blas"] and all(b["library"] and "num_threads" not in b for b in v["blas"])
     assert "torch" in environment.software_versions(training=True)["packages"]  # the test environment has the training stack
     # an absent distribution is left out, not recorded as a guess
     real = importlib.metadata.version
