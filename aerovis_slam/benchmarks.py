@@ -193,22 +193,20 @@ def bench_blas(bundle=None, *, height: int = 240, width: int = 424, products_ms:
 
     per_ms = max(products(50) / 50, 1e-3)
     n_products = max(1, int(round(products_ms / per_ms)))
-    settings = {"blas_own_threads": None, "blas_1_thread": 1, "alone": "alone"}
-    infer: dict[str, list[float]] = {k: [] for k in settings}
-    prod: dict[str, list[float]] = {k: [] for k in settings if k != "alone"}
+    limits = {"blas_own_threads": None, "blas_1_thread": 1}
+    infer: dict[str, list[float]] = {k: [] for k in (*limits, "alone")}
+    prod: dict[str, list[float]] = {k: [] for k in limits}
     for r in range(warmup + repeats):
-        for key, threads in settings.items():
-            if threads == "alone":
-                det.dense(x)
-                if r >= warmup:
-                    infer[key].append(det.last_latency_ms)
-                continue
+        for key, threads in limits.items():
             with blas_thread_limit(threads):
                 ms = products(n_products)
                 det.dense(x)
             if r >= warmup:
                 prod[key].append(ms)
                 infer[key].append(det.last_latency_ms)
+        det.dense(x)  # alone: the floor
+        if r >= warmup:
+            infer["alone"].append(det.last_latency_ms)
     p50 = {k: round(float(np.median(v)), 2) for k, v in infer.items()}
     result = {"benchmark": "blas", "bundle": str(det.bundle.path), "resolution": [width, height], "batch": 2,
               "products_per_frame": n_products, "blas_own_threads": own_threads,
