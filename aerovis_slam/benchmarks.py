@@ -172,9 +172,8 @@ def bench_blas(bundle=None, *, height: int = 240, width: int = 424, products_ms:
       the detector should run as fast between frames as alone.
     """
     from .bundle import BundleDetector, default_bundle_path, synthetic_mcts
-    from .environment import blas_libraries
+    from .environment import blas_libraries, blas_thread_limit
     from .keypoints import cosine_similarity
-    from .slam.pipeline import blas_thread_limit
 
     det = BundleDetector(bundle or default_bundle_path())
     det.bundle.check_size(height, width)

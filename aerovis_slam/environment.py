@@ -5,11 +5,13 @@ OpenCV, ONNX Runtime, gtsam, numba, ...) moves the figures: on the `bench` prese
 gave 2.51 % and 3.14 % sync ATE on handheld_loop in two environments. Results from different
 sessions are only comparable when each says what it ran on, so ``metrics.json`` of a run, the
 ``environment.json`` of a bench and ``metrics.json`` / ``compare.json`` of training and evaluation
-all carry :func:`software_versions`.
+all carry :func:`software_versions`. :func:`blas_thread_limit` sets what it records of the BLAS
+libraries for the length of a SLAM run.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import platform
 import subprocess
@@ -72,21 +74,33 @@ def software_versions(*, training: bool = False) -> dict:
 def blas_libraries() -> list[dict]:
     """The BLAS libraries numpy (and whatever else is loaded) calls, as threadpoolctl finds them:
     ``[{"library": "openblas", "version": "0.3.31...", "architecture": "SkylakeX", "threading_layer":
-    "pthreads", "num_threads": 2}]`` (empty when threadpoolctl is missing).
+    "pthreads", "num_threads": 2}]``.
 
     OpenBLAS picks its kernels by CPU at load time (``architecture``), one more reason figures move
     between machines; ``num_threads`` is the setting at the time of the call (a SLAM run holds it at
-    ``SlamConfig.blas_threads``).
+    ``SlamConfig.blas_threads``, see :func:`blas_thread_limit`).
     """
-    try:
-        import numpy  # noqa: F401  (loads the BLAS that threadpoolctl then finds)
-        from threadpoolctl import threadpool_info
-    except ImportError:
-        return []
+    import numpy  # noqa: F401  (loads the BLAS that threadpoolctl then finds)
+    from threadpoolctl import threadpool_info
+
     found = [{"library": i.get("internal_api"), "version": i.get("version"), "architecture": i.get("architecture"),
               "threading_layer": i.get("threading_layer"), "num_threads": i.get("num_threads")}
              for i in threadpool_info() if i.get("user_api") == "blas"]
     return sorted(found, key=lambda b: (str(b["library"]), str(b["version"])))  # load order varies between runs
+
+
+def blas_thread_limit(threads: int | None):
+    """Context manager: every loaded BLAS runs ``threads`` threads inside it (None: unchanged).
+
+    See ``SlamConfig.blas_threads`` for why the SLAM runtime uses one. threadpoolctl sets the limit
+    through the loaded BLAS library's own API (``openblas_set_num_threads``), which an environment
+    variable cannot do once numpy is imported.
+    """
+    if threads is None:
+        return contextlib.nullcontext()
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=int(threads), user_api="blas")
 
 
 #: SIMD levels, widest first: the first one /proc/cpuinfo lists is recorded

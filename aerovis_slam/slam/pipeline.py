@@ -30,7 +30,6 @@ Example (a sketch; see ``aerovis-slam run``)::
 
 from __future__ import annotations
 
-import contextlib
 import sys
 import threading
 import time
@@ -42,6 +41,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from ..environment import blas_thread_limit
 from ..errors import DataError
 from ..geometry import invert_T, matrix_to_pose7
 from ..io.sequence import Sequence
@@ -52,7 +52,7 @@ from .odometry import StereoInertialOdometry, WarningLog
 from .preprocessing import EventFeeder, EventReader, LivePreprocessor, observation_time
 from .trajectory import final_trajectory
 
-__all__ = ["SlamResult", "blas_thread_limit", "load_config", "run_slam"]
+__all__ = ["SlamResult", "load_config", "run_slam"]
 
 STAGES = ("preprocess", "mcts", "detector", "matching", "refine", "tracking", "keyframe", "backend", "loop", "total")
 
@@ -193,20 +193,6 @@ def run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | 
     with blas_thread_limit(config.blas_threads):
         return _run_slam(sequence, detector, config, mode=mode, loop_closer=loop_closer, progress=progress,
                          stop_event=stop_event, frame_slots=frame_slots, frame_caps=frame_caps)
-
-
-def blas_thread_limit(threads: int | None):
-    """Context manager: numpy's BLAS runs ``threads`` threads inside it (None: unchanged).
-
-    See ``SlamConfig.blas_threads`` for why the runtime uses one. threadpoolctl sets the limit
-    through the loaded BLAS library's own API (``openblas_set_num_threads``), which an environment
-    variable cannot do once numpy is imported.
-    """
-    if threads is None:
-        return contextlib.nullcontext()
-    from threadpoolctl import threadpool_limits
-
-    return threadpool_limits(limits=int(threads), user_api="blas")
 
 
 def _run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str | None, loop_closer,
