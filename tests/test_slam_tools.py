@@ -21,7 +21,7 @@ from aerovis_slam.keypoints import Keypoints
 from aerovis_slam.measurements import PoseSamples
 from aerovis_slam.slam import bench as bench_mod
 from aerovis_slam.slam.cli import main
-from aerovis_slam.slam.loop import LoopCloser, _Snapshot, descriptor_vectors, split_yaw, train_vocabulary, vlad
+from aerovis_slam.slam.loop import LoopCloser, LoopClosure, _HeldLoop, _Snapshot, descriptor_vectors, split_yaw, train_vocabulary, vlad
 from aerovis_slam.slam.trajectory import ate, final_trajectory, is_partial, read_tum, rpe, write_tum
 
 
@@ -374,11 +374,80 @@ def test_verification_rejects_wrong_geometry_and_excess_drift(vocabulary):
     assert closer.stats["candidates"] > 0 and closer.stats["rejected_inliers"] == closer.stats["candidates"]
     assert closer.n_closures == 0
     closer.close()
-    # 3x the drift (~0.8 m of correction after 13 m): beyond the 5 % + 5 cm bound, refused
+    # 3x the drift (~0.8 m of correction and 20 deg of yaw after 13 m): beyond the bounds, refused,
+    # even though every revisit keyframe agrees (no confirmation beyond max_rotation_drift_deg)
     closer = LoopCloser(vocabulary=vocabulary)
     drive(closer, yaw_drift=0.006, side_drift=0.015)
-    assert closer.stats["rejected_drift"] > 0 and closer.n_closures == 0
+    assert closer.stats["rejected_drift"] > 0 and closer.n_closures == 0 and closer.stats["confirmed"] == 0
     closer.close()
+
+
+def test_agreeing_keyframes_confirm_a_loop_beyond_the_drift_bound(vocabulary):
+    """Odometry that drifted more than the drift bound allows (here a bound of 0.5 % + 5 cm against
+    ~2 % of drift; in a run, a stretch of IMU-only propagation): each revisit keyframe alone is beyond
+    it, three in a row imply the same correction, so the closer keeps them and the corrected end lies
+    near the truth. Without confirmation, or beyond the confirmed bound, nothing is closed."""
+    gt, open_loop = drive(None)
+    drift = np.linalg.norm(open_loop[-1][:3, 3] - gt[-1][:3, 3])
+    assert drift > 0.2
+    tight = {"drift_fraction": 0.005}
+    closer = LoopCloser(config=tight, vocabulary=vocabulary)
+    gt, est = drive(closer)
+    confirmed = [c for c in closer.closures if c.confirmed_by > 1]
+    assert closer.stats["confirmed"] == len(confirmed) == 3
+    assert [c.confirmed_by for c in confirmed] == [3, 3, 3] and closer.closures[0].to_dict()["confirmed_by"] == 3
+    assert all(c.match < 10 and c.query > 50 for c in confirmed)  # revisits of the start, in keyframe order
+    assert [c.query for c in confirmed] == sorted({c.query for c in confirmed})
+    for c in confirmed:  # each beyond its own bound; the pose graph trusts it up to the confirmed one
+        assert c.drift_m > closer._drift_bound(c.travelled_m)
+        assert c.bound_m == pytest.approx(0.2 * c.travelled_m + 0.05)
+    # the loops pin the revisit to the PnP accuracy (a few mm; 1 % depth noise on the landmarks) and
+    # the keyframes after it drift by a few cm more: well below the open-loop drift (measured 3 cm)
+    assert np.linalg.norm(est[-1][:3, 3] - gt[-1][:3, 3]) < 0.25 * drift
+    closer.close()
+    for off in ({"confirmations": 0}, {"confirm_drift_fraction": 0.01}):
+        closer = LoopCloser(config=dict(tight, **off), vocabulary=vocabulary)
+        _, est = drive(closer)
+        assert closer.n_closures == 0 and closer.stats["rejected_drift"] > 0, off
+        assert np.linalg.norm(est[-1][:3, 3] - gt[-1][:3, 3]) == pytest.approx(drift)
+        closer.close()
+
+
+def test_held_loops_need_agreeing_corrections():
+    """The confirmation rule on its own: held loops (beyond the drift bound) of three keyframes are
+    kept when their implied corrections agree within drift_min_m + 25 % of their size and 3 deg and
+    reach two old keyframes; one disagreeing correction, a too old one, a rotation apart or a single
+    old keyframe (whose landmark errors bias every loop to it alike) is not enough."""
+    closer = LoopCloser()
+    closer._order = list(range(20))
+
+    def held(query, shift, yaw_deg=0.0, inliers=12, match=None):
+        match = query - 15 if match is None else match  # the revisit of keyframes 0-4
+        loop = LoopClosure(query, match, 0.9, inliers, np.eye(4), np.eye(4), 5.0, np.eye(6), query * 100_000, 0, bound_m=1.05)
+        return _HeldLoop(loop, np.asarray(shift, float), so3_exp(np.array([0.0, 0.0, np.radians(yaw_deg)])))
+
+    def confirm(items, newest=19):
+        closer._held = list(items)
+        return closer._confirm(types.SimpleNamespace(kf_id=newest))
+
+    # 0.5 m corrections: tolerance 0.05 + 0.125 m around the newest; two loops of keyframe 18, the best kept
+    agree = [held(17, [0.5, 0.0, 0.0]), held(18, [0.45, 0.1, 0.0], inliers=10), held(18, [0.55, -0.05, 0.0], inliers=15),
+             held(19, [0.5, 0.05, 0.02], yaw_deg=2.0)]
+    kept = confirm(agree)
+    assert [(c.query, c.inliers, c.confirmed_by) for c in kept] == [(17, 12, 3), (18, 15, 3), (19, 12, 3)]
+    assert len(closer._held) == 4  # nothing dropped until accepted
+    # keyframe 18's corrections 0.2 m away from the newest's (tolerance 0.175 m): two keyframes are not three
+    assert confirm([held(17, [0.5, 0, 0]), held(18, [0.7, 0.0, 0.0]), held(19, [0.5, 0, 0])]) == []
+    # a correction turned 4 deg from the others' (limit 3 deg)
+    assert confirm([held(17, [0.5, 0, 0], yaw_deg=4.0), held(18, [0.5, 0, 0]), held(19, [0.5, 0, 0])]) == []
+    # keyframe 12 is more than 6 keyframes back: forgotten
+    assert confirm([held(12, [0.5, 0, 0]), held(18, [0.5, 0, 0]), held(19, [0.5, 0, 0])]) == []
+    assert [h.loop.query for h in closer._held] == [18, 19]
+    # three keyframes agree, but all through old keyframe 3
+    assert confirm([held(17, [0.5, 0, 0], match=3), held(18, [0.5, 0, 0], match=3), held(19, [0.5, 0, 0], match=3)]) == []
+    assert len(confirm([held(17, [0.5, 0, 0], match=3), held(18, [0.5, 0, 0], match=3), held(19, [0.5, 0, 0], match=4)])) == 3
+    # nothing held for the newest keyframe: no new evidence, no decision
+    assert confirm([held(16, [0.5, 0, 0]), held(17, [0.5, 0, 0]), held(18, [0.5, 0, 0])]) == []
 
 
 class _RefinedLater(LoopCloser):

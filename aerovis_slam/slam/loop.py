@@ -22,7 +22,16 @@ As in OKVIS2 (REFERENCE.md section 5; paper Fig. 1), in three steps:
    the correction the loop implies must be at most ``drift_fraction`` of the distance travelled
    between the two keyframes (plus ``drift_min_m``) and ``max_rotation_drift_deg``, since real
    odometry cannot have drifted more (OKVIS2 uses ~1.35 %; the default here is looser for the
-   shorter, rougher runs of this runtime).
+   shorter, rougher runs of this runtime). Odometry that went through a stretch without visual
+   tracking (few events, IMU only) can have drifted more than that, and a single loop beyond the
+   bound is no evidence either way; such a loop is held, and kept when ``confirmations`` keyframes
+   in a row each verify a loop whose implied correction agrees with it (within
+   ``confirm_agree_fraction`` of its size and ``confirm_agree_deg``), against at least two
+   different old keyframes, up to ``confirm_drift_fraction`` of the distance travelled. This is the
+   temporal consistency check of DBoW2 / ORB-SLAM applied to the correction: a wrong match implies a
+   different correction at each keyframe, a real revisit the same one. Two old keyframes, because
+   one keyframe's landmark errors bias every loop measured against it alike (seen on the bench:
+   three agreeing loops to one keyframe, each 9-17 cm off).
 3. **Pose-graph optimisation** (gtsam): keyframe poses linked by relative-pose edges from the
    odometry (``BetweenFactorPose3``, noise growing with the distance of the edge) and by the loop
    edges (``BetweenFactorPose3`` with the first-order covariance of the PnP pose and a Huber robust
@@ -52,6 +61,7 @@ vocabulary the closer learns one online from its first keyframes (and says so in
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import logging
@@ -96,6 +106,12 @@ DEFAULT_CONFIG: dict = {
     "drift_fraction": 0.05,
     "drift_min_m": 0.05,
     "max_rotation_drift_deg": 15.0,
+    # loops beyond the drift bound: kept when this many keyframes in a row verify agreeing ones (0: never)
+    "confirmations": 3,
+    "confirm_window_keyframes": 6,  # how far back a held loop still counts
+    "confirm_drift_fraction": 0.2,  # their bound: this fraction of the distance travelled (plus drift_min_m)
+    "confirm_agree_fraction": 0.25,  # corrections agree within this fraction of their size (plus drift_min_m) ...
+    "confirm_agree_deg": 3.0,  # ... and this rotation
     # pose graph
     "odometry_sigma_rot_rad": 0.002,
     "odometry_sigma_rot_per_m": 0.01,  # rad per metre of the edge
@@ -313,6 +329,9 @@ class LoopClosure:
     ``T_match_query`` (4, 4) is the measured pose of the query body in the match body frame and
     ``T_est_match_query`` the odometry's estimate of it (loop corrections before this one included);
     ``drift_m`` / ``drift_deg`` the correction between them, which the loop applies to the odometry.
+    ``bound_m`` is the drift the verification allowed it (the pose graph trusts it fully up to
+    there); ``confirmed_by`` the number of keyframes whose agreeing loops kept it (1: within the
+    drift bound on its own).
     """
 
     query: int
@@ -325,6 +344,8 @@ class LoopClosure:
     covariance: np.ndarray  # (6, 6) of T_match_query in gtsam's Pose3 tangent (rotation, translation)
     t_us: int  # time of the query keyframe
     match_t_us: int  # time of the match keyframe
+    bound_m: float = float("inf")
+    confirmed_by: int = 1
 
     @property
     def drift_m(self) -> float:
@@ -336,7 +357,17 @@ class LoopClosure:
 
     def to_dict(self) -> dict:
         return {"query": self.query, "match": self.match, "t_s": self.t_us / 1e6, "score": round(self.score, 4), "inliers": self.inliers,
-                "drift_m": round(self.drift_m, 4), "drift_deg": round(self.drift_deg, 3), "travelled_m": round(self.travelled_m, 3)}
+                "drift_m": round(self.drift_m, 4), "drift_deg": round(self.drift_deg, 3), "travelled_m": round(self.travelled_m, 3),
+                "confirmed_by": self.confirmed_by}
+
+
+@dataclass
+class _HeldLoop:
+    """A verified loop beyond the drift bound, waiting for agreeing ones (:meth:`LoopCloser._confirm`)."""
+
+    loop: LoopClosure
+    shift: np.ndarray  # (3,) the query's position as the loop measures it minus the odometry's (world, m)
+    rotation: np.ndarray  # (3, 3) the query's rotation as measured times the odometry's transposed (world)
 
 
 @dataclass
@@ -391,11 +422,15 @@ class LoopCloser:
         self._db_ids: list[int] = []
         self._db_row: dict[int, int] = {}  # keyframe id -> row of the VLAD table
         self._cooldown = 0
+        self._held: list[_HeldLoop] = []
         self.n_closures = 0
         self.closures = self._loops
         self.last_correction = np.eye(4)
         self.timings: dict[str, list[float]] = {"loop_detection": [], "pose_graph": []}
-        self.stats = {"candidates": 0, "rejected_matches": 0, "rejected_inliers": 0, "rejected_drift": 0, "optimisations": 0}
+        # rejected_drift counts single verifications beyond the drift bound, confirmed the loops that
+        # agreeing verifications kept after all (so a confirmed loop is counted in both)
+        self.stats = {"candidates": 0, "rejected_matches": 0, "rejected_inliers": 0, "rejected_drift": 0, "confirmed": 0,
+                      "optimisations": 0}
         self.warnings: list[str] = []
         # background optimisation
         self._lock = threading.Lock()
@@ -620,12 +655,67 @@ class LoopCloser:
             self.stats["candidates"] += 1
             loop = self.verify(kf, self._keyframes[cand_id], score)
             if loop is not None:
-                self._loops.append(loop)
-                self.n_closures += 1
-                self._cooldown = int(self.config["cooldown_keyframes"])
-                log.info("loop closure: keyframe %d -> %d (%d inliers, drift %.3f m)", loop.query, loop.match, loop.inliers, loop.drift_m)
-                self._submit()
+                self._accept([loop])
                 return
+        confirmed = self._confirm(kf)
+        if confirmed:
+            self.stats["confirmed"] += len(confirmed)
+            self._accept(confirmed)
+
+    def _accept(self, loops: list[LoopClosure]) -> None:
+        """Add verified loops to the graph and start an optimisation; held loops are dropped (their
+        corrections were measured against poses this one changes)."""
+        for loop in loops:
+            self._loops.append(loop)
+            self.n_closures += 1
+            log.info("loop closure: keyframe %d -> %d (%d inliers, drift %.3f m, confirmed by %d)", loop.query, loop.match,
+                     loop.inliers, loop.drift_m, loop.confirmed_by)
+        self._held.clear()
+        self._cooldown = int(self.config["cooldown_keyframes"])
+        self._submit()
+
+    def _hold(self, query: _Keyframe, match: _Keyframe, loop: LoopClosure) -> None:
+        """Keep a loop beyond the drift bound (but within ``confirm_drift_fraction``) for :meth:`_confirm`."""
+        c = self.config
+        if int(c["confirmations"]) < 2 or loop.drift_deg > c["max_rotation_drift_deg"]:
+            return
+        cap = c["confirm_drift_fraction"] * loop.travelled_m + c["drift_min_m"]
+        if loop.drift_m > cap:
+            return
+        measured = match.T_world_body @ loop.T_match_query  # the query's pose if the match keyframe's is right
+        self._held.append(_HeldLoop(dataclasses.replace(loop, bound_m=cap), measured[:3, 3] - query.T_world_body[:3, 3],
+                                    measured[:3, :3] @ query.T_world_body[:3, :3].T))
+
+    def _confirm(self, kf: _Keyframe) -> list[LoopClosure]:
+        """The held loops that ``confirmations`` keyframes up to ``kf`` agree on (``kf``'s among
+        them), one per keyframe (the most inliers), or [] when they do not (yet).
+
+        Two loops agree when the corrections they imply for their query keyframes (world position
+        shift and rotation) differ by at most ``drift_min_m + confirm_agree_fraction * |shift|`` and
+        ``confirm_agree_deg``: the odometry's drift changes little over a few keyframes, while a
+        wrong match implies an unrelated correction each time. The agreeing loops must reach at
+        least two old keyframes (independent landmark estimates).
+        """
+        c = self.config
+        recent = set(self._order[-int(c["confirm_window_keyframes"]):])
+        self._held = [h for h in self._held if h.loop.query in recent]
+        need = int(c["confirmations"])
+        best: dict[int, _HeldLoop] = {}
+        for anchor in [h for h in self._held if h.loop.query == kf.kf_id]:
+            tol_m = c["drift_min_m"] + c["confirm_agree_fraction"] * float(np.linalg.norm(anchor.shift))
+            group: dict[int, _HeldLoop] = {}
+            matches = set()
+            for h in self._held:
+                angle = np.degrees(np.arccos(np.clip((np.trace(h.rotation @ anchor.rotation.T) - 1) / 2, -1.0, 1.0)))
+                if np.linalg.norm(h.shift - anchor.shift) <= tol_m and angle <= c["confirm_agree_deg"]:
+                    matches.add(h.loop.match)
+                    if h.loop.query not in group or h.loop.inliers > group[h.loop.query].loop.inliers:
+                        group[h.loop.query] = h
+            if len(matches) >= 2 and len(group) > len(best):
+                best = group
+        if len(best) < max(need, 2):
+            return []
+        return [dataclasses.replace(best[q].loop, confirmed_by=len(best)) for q in sorted(best)]
 
     # -- verification ----------------------------------------------------------------------------
     def verify(self, query: _Keyframe, match: _Keyframe, score: float = float("nan")) -> LoopClosure | None:
@@ -640,18 +730,23 @@ class LoopCloser:
         if len(pairs):
             pairs = pairs[match.point_valid[pairs[:, 1]]]
         loop, reason = self._verify_pairs(query, match, pairs, score)
-        if loop is None and reason != "drift" and c["guided_window_px"]:
-            loop, reason2 = self._verify_pairs(query, match, self._guided_pairs(query, match), score)
+        if reason not in (None, "drift") and c["guided_window_px"]:
+            loop2, reason2 = self._verify_pairs(query, match, self._guided_pairs(query, match), score)
             stages = ("matches", "inliers", "drift")
-            reason = max(reason, reason2, key=stages.index) if reason2 else reason
-        if loop is None:
-            self.stats[f"rejected_{reason}"] += 1
-        return loop
+            if reason2 is None or stages.index(reason2) > stages.index(reason):
+                loop, reason = loop2, reason2
+        if reason is None:
+            return loop
+        self.stats[f"rejected_{reason}"] += 1
+        if reason == "drift":
+            self._hold(query, match, loop)
+        return None
 
     def _verify_pairs(self, query: _Keyframe, match: _Keyframe, pairs: np.ndarray, score: float
                       ) -> tuple[LoopClosure | None, str | None]:
         """PnP RANSAC + drift bound on ``pairs`` (M, 2) ``(query index, match index)``:
-        ``(loop, None)`` or ``(None, reason)`` with reason ``matches``, ``inliers`` or ``drift``."""
+        ``(loop, None)``, ``(None, reason)`` with reason ``matches`` or ``inliers``, or
+        ``(loop, "drift")``: a measured loop beyond the drift bound."""
         c = self.config
         if len(pairs) < c["min_inliers"]:
             return None, "matches"
@@ -677,9 +772,11 @@ class LoopCloser:
         T_est = invert_T(match.T_world_body) @ query.T_world_body
         drift_m, drift_deg = pose_difference(T_est, T_match_query)
         travelled = query.travelled_m - match.travelled_m
-        if drift_m > self._drift_bound(travelled) or drift_deg > c["max_rotation_drift_deg"]:
-            return None, "drift"
-        return LoopClosure(query.kf_id, match.kf_id, score, n_in, T_match_query, T_est, travelled, cov, query.t_us, match.t_us), None
+        bound = self._drift_bound(travelled)
+        loop = LoopClosure(query.kf_id, match.kf_id, score, n_in, T_match_query, T_est, travelled, cov, query.t_us, match.t_us, bound)
+        if drift_m > bound or drift_deg > c["max_rotation_drift_deg"]:
+            return loop, "drift"
+        return loop, None
 
     def _guided_pairs(self, query: _Keyframe, match: _Keyframe) -> np.ndarray:
         """Matches of the match keyframe's landmarks to the query's keypoints near their projection
@@ -758,8 +855,7 @@ class LoopCloser:
             ids=list(self._order),
             poses=[self._keyframes[i].T_world_body.copy() for i in self._order],
             edges=[(a, b, T.copy(), None) for (a, b), T in self._odometry.items()]
-            + [(lc.match, lc.query, lc.T_match_query.copy(), (self._drift_bound(lc.travelled_m), lc.covariance))
-               for lc in self._loops])
+            + [(lc.match, lc.query, lc.T_match_query.copy(), (lc.bound_m, lc.covariance)) for lc in self._loops])
         with self._lock:
             if self._stop:
                 return
