@@ -22,7 +22,7 @@ from aerovis_slam.sim import (
 from aerovis_slam.sim.cli import main as sim_main
 from aerovis_slam.sim.cli import run_preset
 from aerovis_slam.sim.rig import RIG_DIR, available_rigs
-from aerovis_slam.sim.trajectory import Sinusoids, Trajectory
+from aerovis_slam.sim.trajectory import Sinusoids, Trajectory, make_trajectory
 
 NO_NOISE = EventConfig(noise=False, refractory_us=0)
 
@@ -335,8 +335,26 @@ def test_every_kind_stays_inside_and_bench_names():
     for spec in preset_specs("bench") + preset_specs("train")[:12]:
         sim = Simulator(spec)  # raises if a trajectory leaves the free space
         if spec.name == "handheld_loop":
-            p = sim.trajectory.pose7(np.array([0.0, spec.duration_s]))
-            assert np.allclose(p[0], p[1], atol=1e-9)
+            # back at its start after the 10 s loop, then along its first 2 s again, exactly
+            period = spec.loop_period_s
+            assert period == pytest.approx(10.0) and spec.duration_s == pytest.approx(12.0)
+            t = np.linspace(0.0, spec.duration_s - period, 41)
+            np.testing.assert_allclose(sim.trajectory.pose7(t + period), sim.trajectory.pose7(t), atol=1e-9)
+            np.testing.assert_allclose(sim.trajectory.angular_velocity(t + period), sim.trajectory.angular_velocity(t), atol=1e-9)
+
+
+def test_loop_period_of_a_handheld_trajectory():
+    lo, hi = np.array([-2.0, -2.0, 0.5]), np.array([2.0, 2.0, 2.0])
+    traj = make_trajectory("handheld", np.random.default_rng(3), 5.0, lo, hi, loop=True, loop_period_s=4.0)
+    t = np.linspace(0.0, 1.0, 11)
+    np.testing.assert_allclose(traj.pose7(t + 4.0), traj.pose7(t), atol=1e-9)
+    np.testing.assert_allclose(traj.position(t + 4.0, 1), traj.position(t, 1), atol=1e-9)  # velocities too: the IMU repeats
+    # None: the period is the duration (the trajectory ends where it started), as before
+    whole = make_trajectory("handheld", np.random.default_rng(3), 5.0, lo, hi, loop=True)
+    np.testing.assert_allclose(whole.pose7(np.array([5.0])), whole.pose7(np.array([0.0])), atol=1e-9)
+    for bad in (0.0, 6.0):
+        with pytest.raises(DataError, match=r"loop_period_s must lie in \(0, duration_s = 5.0\]"):
+            make_trajectory("handheld", np.random.default_rng(3), 5.0, lo, hi, loop=True, loop_period_s=bad)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -458,3 +476,7 @@ def test_ensure_preset_caches(tmp_path, monkeypatch, capsys):
     with pytest.raises(DataError, match="unknown preset"):
         ensure_preset("nope", cache_dir=str(tmp_path / "x"))
     assert not (tmp_path / "x").exists()
+    # a revised preset (bench: handheld_loop retraces its start since revision 2) has a folder of its
+    # own, so a cache of the earlier sequences is never taken for the new ones
+    assert cache.preset_dir("bench", 0) == tmp_path / "envcache" / "sim" / "bench-seed0-v1r2"
+    assert cache.preset_dir("tiny", 3, tmp_path / "y") == tmp_path / "y" / "tiny-seed3-v1"

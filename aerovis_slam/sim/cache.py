@@ -1,8 +1,9 @@
 """Generate a preset once, reuse it afterwards (for the training data module).
 
 The cache root is ``$AEROVIS_CACHE/sim`` when the environment variable is set, else
-``~/.cache/aerovis/sim``; a preset lives in ``<root>/<name>-seed<seed>-v<SIM_VERSION>/`` (a new
-simulator version, which changes the data, regenerates instead of reusing stale files). Generation goes
+``~/.cache/aerovis/sim``; a preset lives in ``<root>/<name>-seed<seed>-v<SIM_VERSION>/``, with
+``r<revision>`` appended from a preset's second revision on (:func:`preset_dir`; a new simulator
+version or preset revision, which changes the data, regenerates instead of reusing stale files). Generation goes
 into a hidden temporary folder beside it that is renamed when complete, so an interrupted
 run never leaves a folder that looks finished, and two concurrent callers end with one copy.
 
@@ -30,13 +31,30 @@ def cache_root() -> Path:
     return (Path(env).expanduser() if env else Path.home() / ".cache" / "aerovis") / "sim"
 
 
+def preset_dir(name: str, seed: int = 0, cache_dir: str | os.PathLike | None = None) -> Path:
+    """Where preset ``name`` of ``seed`` is cached (whether or not it has been generated yet):
+    ``<root>/<name>-seed<seed>-v<SIM_VERSION>`` plus ``r<revision>`` for a preset revised since
+    (:data:`~aerovis_slam.sim.presets.PRESET_REVISIONS`; ``bench-seed0-v1r2``).
+
+    Raises:
+        DataError: for an unknown preset.
+    """
+    from .presets import PRESET_REVISIONS, preset_specs
+    from .simulator import SIM_VERSION
+
+    preset_specs(name, seed)  # validate the name
+    root = Path(cache_dir).expanduser() if cache_dir is not None else cache_root()
+    revision = PRESET_REVISIONS[name]
+    return root / (f"{name}-seed{seed}-v{SIM_VERSION}" + (f"r{revision}" if revision > 1 else ""))
+
+
 def ensure_preset(name: str, cache_dir: str | None = None, seed: int = 0, *, progress: bool = True,
                   workers: int | None = None) -> Path:
     """The folder of preset ``name`` generated with ``seed``, generating it on first use.
 
     Args:
         name: preset name (``train``, ``bench``, ``tiny``).
-        cache_dir: folder that holds ``<name>-seed<seed>-v<SIM_VERSION>/`` (default :func:`cache_root`).
+        cache_dir: folder that holds the preset's folder (:func:`preset_dir`; default :func:`cache_root`).
         seed: preset seed.
         progress: show progress bars while generating.
         workers: sequences generated at a time, one process each (None: one per CPU core).
@@ -48,12 +66,9 @@ def ensure_preset(name: str, cache_dir: str | None = None, seed: int = 0, *, pro
         DataError: unknown preset or unwritable cache folder.
     """
     from .cli import run_preset
-    from .presets import preset_specs
-    from .simulator import SIM_VERSION
 
-    preset_specs(name, seed)  # validate the name before touching the disk
-    root = Path(cache_dir).expanduser() if cache_dir is not None else cache_root()
-    final = root / f"{name}-seed{seed}-v{SIM_VERSION}"
+    final = preset_dir(name, seed, cache_dir)  # validates the name before touching the disk
+    root = final.parent
     if (final / "summary.json").is_file():
         _note_opencv_mismatch(final)
         return final

@@ -9,7 +9,11 @@ pure function of its spec, so a preset with the same seed reproduces the same fi
   9.7 min on a 2-core box, 256 M events, 1.4 GB.
 * ``bench``: a fixed evaluation set with every trajectory kind, named after its kind
   (``handheld_*``, ``shake_*``, ``spin_hdr_*``, ``drone8_*``, ``slider_*``);
-  ``handheld_loop`` (and ``spin_hdr_window``, ``drone8_*``) return to their start.
+  ``handheld_loop`` (and ``spin_hdr_window``, ``drone8_*``) return to their start;
+  ``handheld_loop`` goes round its closed 10 s path and then on along its first 2 s, as a
+  recording that walks past its starting point does, so that the revisit is seen while the camera
+  still moves through texture (revision 2 of the preset; in revision 1 the path ended at its start,
+  after a nearly event-free stretch that hid the revisit).
 * ``tiny``: two 1 s sequences at 64x48 for tests and the notebook.
 
 Example:
@@ -28,6 +32,9 @@ from .events import EventConfig
 from .simulator import SequenceSpec
 
 PRESETS = ("train", "bench", "tiny")
+#: A preset's revision: raised when its sequences change (the simulator itself unchanged), so that a
+#: cache of the earlier sequences is not taken for the new ones (:func:`~aerovis_slam.sim.cache.preset_dir`).
+PRESET_REVISIONS = {"train": 1, "bench": 2, "tiny": 1}
 
 
 def _tiny(seed: int, duration: float | None) -> list[SequenceSpec]:
@@ -46,8 +53,10 @@ def _bench(seed: int, duration: float | None) -> list[SequenceSpec]:
 
     s = seed * 100
     return [
+        # round a closed 10 s path, then its first 2 s again (loop_period_s scales with a --duration override)
         SequenceSpec("handheld_loop", rig="prophesee640_stereo", rig_scale=0.5, scene_seed=s + 1, trajectory="handheld",
-                     trajectory_seed=s + 1, loop=True, duration_s=dur(10.0), noise_seed=s + 1),
+                     trajectory_seed=s + 1, loop=True, loop_period_s=dur(12.0) * 10.0 / 12.0, duration_s=dur(12.0),
+                     noise_seed=s + 1),
         SequenceSpec("handheld_office", rig="davis240_stereo", scene_seed=s + 2, trajectory="handheld",
                      trajectory_seed=s + 2, speed=1.5, duration_s=dur(8.0), noise_seed=s + 2),
         SequenceSpec("shake_rapid", rig="drone424", scene_seed=s + 3, trajectory="shake",

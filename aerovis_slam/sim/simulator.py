@@ -68,6 +68,9 @@ class SequenceSpec:
         trajectory: kind (see :data:`~aerovis_slam.sim.trajectory.TRAJECTORY_KINDS`).
         trajectory_seed: seed of the trajectory.
         loop: end where it started (``handheld``).
+        loop_period_s: with ``loop``, the closed path's period (None: ``duration_s``); a shorter
+            one retraces the path's start after the return (see
+            :func:`~aerovis_slam.sim.trajectory.make_trajectory`).
         speed: motion speed factor.
         duration_s: length in seconds.
         frame_rate_hz: frames and depth maps per second and camera (0: none).
@@ -90,6 +93,7 @@ class SequenceSpec:
     trajectory: str = "handheld"
     trajectory_seed: int = 0
     loop: bool = False
+    loop_period_s: float | None = None
     speed: float = 1.0
     duration_s: float = 4.0
     frame_rate_hz: float = 20.0
@@ -173,7 +177,7 @@ class Simulator:
         lo, hi = free_space(self.scene)
         self.trajectory = trajectory if trajectory is not None else make_trajectory(
             spec.trajectory, np.random.default_rng(np.random.SeedSequence([spec.trajectory_seed, 0x7A5])),
-            spec.duration_s, lo, hi, loop=spec.loop, speed=spec.speed)
+            spec.duration_s, lo, hi, loop=spec.loop, speed=spec.speed, loop_period_s=spec.loop_period_s)
         self.cams = list(rig.cameras)
         self.T_body_cam = [rig.cameras[c].T_imu_cam for c in self.cams]
         check_inside(self.trajectory, self.scene, self.T_body_cam, name=spec.name)

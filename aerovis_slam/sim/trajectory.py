@@ -192,7 +192,7 @@ def _random_sines(rng, n, amp_total, f_lo, f_hi, duration=None, loop=False) -> S
 
 
 def make_trajectory(kind: str, rng: np.random.Generator, duration_s: float, lo: np.ndarray, hi: np.ndarray,
-                    *, loop: bool = False, speed: float = 1.0) -> Trajectory:
+                    *, loop: bool = False, speed: float = 1.0, loop_period_s: float | None = None) -> Trajectory:
     """Generate a trajectory of a kind inside the free box ``[lo, hi]`` (world, metres).
 
     Args:
@@ -200,9 +200,13 @@ def make_trajectory(kind: str, rng: np.random.Generator, duration_s: float, lo: 
         rng: random generator (the trajectory is a function of its state).
         duration_s: length in seconds.
         lo, hi: (3,) corners of the free space the body should stay in.
-        loop: make a ``handheld`` trajectory end exactly where it started (others that
-            loop by nature do: ``spin``, ``drone8``).
+        loop: make a ``handheld`` trajectory periodic, so that it is back exactly where it
+            started after ``loop_period_s`` (others that loop by nature do: ``spin``, ``drone8``).
         speed: scales the frequencies of handheld/shake motion (and spin rate).
+        loop_period_s: the period of a looping ``handheld`` trajectory (None: ``duration_s``, so
+            it ends where it started). A shorter period makes the camera go round its closed
+            path and then retrace its first ``duration_s - loop_period_s`` seconds, as a loop
+            recording that continues past its start does.
 
     Raises:
         DataError: for an unknown kind.
@@ -210,6 +214,9 @@ def make_trajectory(kind: str, rng: np.random.Generator, duration_s: float, lo: 
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
     mid, half = (lo + hi) / 2, np.maximum((hi - lo) / 2, 0.0)
     T = float(duration_s)
+    period = float(loop_period_s) if loop_period_s is not None else T
+    if loop and not 0 < period <= T:
+        raise DataError(None, f"loop_period_s must lie in (0, duration_s = {T}], got {loop_period_s}")
     if kind not in TRAJECTORY_KINDS:
         raise DataError(None, f"unknown trajectory kind {kind!r}; expected one of {TRAJECTORY_KINDS}")
     yaw0 = rng.uniform(-np.pi, np.pi)
@@ -222,22 +229,22 @@ def make_trajectory(kind: str, rng: np.random.Generator, duration_s: float, lo: 
         amp = np.minimum(0.45 * half, [0.5, 0.5, 0.15])
         pos = []
         for i in range(3):
-            s = _random_sines(rng, 3, amp[i], 0.1 * speed, 0.5 * speed, T, loop)
+            s = _random_sines(rng, 3, amp[i], 0.1 * speed, 0.5 * speed, period, loop)
             s.c0 = c[i] - s(np.zeros(1))[0]  # start at c
             pos.append(s)
-        euler = [_random_sines(rng, 3, rng.uniform(0.3, 0.6), 0.08 * speed, 0.4 * speed, T, loop),
-                 _random_sines(rng, 2, rng.uniform(0.08, 0.2), 0.1 * speed, 0.5 * speed, T, loop),
-                 _random_sines(rng, 2, rng.uniform(0.04, 0.1), 0.1 * speed, 0.5 * speed, T, loop)]
+        euler = [_random_sines(rng, 3, rng.uniform(0.3, 0.6), 0.08 * speed, 0.4 * speed, period, loop),
+                 _random_sines(rng, 2, rng.uniform(0.08, 0.2), 0.1 * speed, 0.5 * speed, period, loop),
+                 _random_sines(rng, 2, rng.uniform(0.04, 0.1), 0.1 * speed, 0.5 * speed, period, loop)]
         euler[0].c0 = yaw0
         euler[1].c0 = rng.uniform(-0.1, 0.05)
         if kind == "shake":
             # Rotational shaking: yaw and pitch at 3-6 Hz, amplitudes 0.1-0.35 rad, so peak
             # rates reach A * 2 pi f ~ 300-700 deg/s; translation jitter of 1-3 cm.
-            euler[0] = euler[0].shifted(_random_sines(rng, 2, rng.uniform(0.2, 0.35), 3.0 * speed, 6.0 * speed, T, loop))
-            euler[1] = euler[1].shifted(_random_sines(rng, 2, rng.uniform(0.1, 0.2), 3.0 * speed, 6.0 * speed, T, loop))
-            euler[2] = euler[2].shifted(_random_sines(rng, 1, rng.uniform(0.03, 0.08), 2.0 * speed, 4.0 * speed, T, loop))
+            euler[0] = euler[0].shifted(_random_sines(rng, 2, rng.uniform(0.2, 0.35), 3.0 * speed, 6.0 * speed, period, loop))
+            euler[1] = euler[1].shifted(_random_sines(rng, 2, rng.uniform(0.1, 0.2), 3.0 * speed, 6.0 * speed, period, loop))
+            euler[2] = euler[2].shifted(_random_sines(rng, 1, rng.uniform(0.03, 0.08), 2.0 * speed, 4.0 * speed, period, loop))
             for i in range(3):
-                pos[i] = pos[i].shifted(_random_sines(rng, 2, rng.uniform(0.01, 0.03), 3.0 * speed, 6.0 * speed, T, loop))
+                pos[i] = pos[i].shifted(_random_sines(rng, 2, rng.uniform(0.01, 0.03), 3.0 * speed, 6.0 * speed, period, loop))
         return Trajectory(kind, T, pos, euler)
     if kind == "spin":
         c = mid + rng.uniform(-0.3, 0.3, 3) * half
