@@ -48,7 +48,8 @@ FRAMES_FILE = "frames.txt"  # per output: its frame slot, time, latency, process
 CLASSICAL = ("orb", "sift", "gftt_brief")
 MODE_CONFIG = {"sync": "accurate", "async": "realtime", "live": "realtime"}  # the paper's two settings
 BENCH_FIELDS = ("sequence", "mode", "detector", "status", "ate_rmse_m", "ate_pct", "path_length_m", "rate_hz", "loop_closures",
-                "repeat", "keypoint_noise_px", "ate_pct_final", "loops_better_than_drift", "keypoint_error_px")
+                "repeat", "keypoint_noise_px", "ate_pct_final", "loops_better_than_drift", "keypoint_error_px",
+                "end_error_m", "end_error_m_final")
 
 
 def make_detector(model: str | os.PathLike | None = None, classical: str | None = None, *, top_k: int | None = None,
@@ -272,7 +273,9 @@ def bench_row(sequence: str, mode: str, detector: str, metrics: dict | None, sta
             # run with --keypoint-errors: median distance (px) of the observations to their scene points
             "keypoint_error_px": ((m.get("pipeline_info") or {}).get("keypoint_errors") or {}).get("median_px"),
             # closures whose measured relative position beat the odometry's, by the ground truth (None: not judged)
-            "loops_better_than_drift": sum(c["error_m"] < c["true_drift_m"] for c in judged) if judged else None}
+            "loops_better_than_drift": sum(c["error_m"] < c["true_drift_m"] for c in judged) if judged else None,
+            # the last output's error after aligning the first 1.5 s (live, final): drift a loop closure removes
+            "end_error_m": m.get("end_error_m"), "end_error_m_final": (m.get("final") or {}).get("end_error_m")}
 
 
 def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str | os.PathLike, *,

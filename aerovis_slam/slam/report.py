@@ -28,7 +28,7 @@ import numpy as np
 from ..errors import DataError
 from ..measurements import PoseSamples
 from ..fileio import atomic_write, atomic_write_text
-from .trajectory import ate, json_ready, rpe
+from .trajectory import ate, end_error, json_ready, rpe
 
 METRICS_VERSION = 1
 
@@ -108,6 +108,9 @@ def compute_metrics(result, gt: PoseSamples | None, *, sequence: str | os.PathLi
         "ate_mean_m": None, "ate_median_m": None, "ate_max_m": None,
         "ate_sim3_rmse_m": None, "sim3_scale": None,
         "rpe_delta_s": rpe_delta_s, "rpe_trans_rmse_m": None, "rpe_rot_rmse_deg": None, "rpe_pairs": 0,
+        # the last output's error after aligning the first seconds (trajectory.end_error): the drift
+        # a loop closure removes on a sequence that returns to its start
+        "end_error_m": None, "end_error_align_s": None,
         "loop_closures": int(result.loop_closures),
         "tracking_losses": int(result.tracking_losses),
         "stages": stage_summary(result.stage_ms),
@@ -138,6 +141,8 @@ def compute_metrics(result, gt: PoseSamples | None, *, sequence: str | os.PathLi
             span_s = ate_se3["duration_s"]
             delta = rpe_delta_s if span_s >= 2 * rpe_delta_s else max(0.05, round(span_s / 4 / 0.05) * 0.05)
             m.update(rpe(gt, est, delta_s=delta))
+            end_live = _end_error(gt, est, warnings)
+            m.update(end_live)
             final = getattr(result, "pose7_final", None)
             if final is not None:
                 # the same alignment and RPE of the final trajectory (same times as the live outputs)
@@ -146,10 +151,22 @@ def compute_metrics(result, gt: PoseSamples | None, *, sequence: str | os.PathLi
                 rf = json_ready(ate_final)
                 rpe_f = rpe(gt, est_f, delta_s=delta)
                 m["final"] = {"ate_rmse_m": rf["ate_rmse_m"], "ate_pct": rf["ate_pct"], "ate_max_m": rf["ate_max_m"],
-                              "rpe_trans_rmse_m": rpe_f["rpe_trans_rmse_m"], "rpe_rot_rmse_deg": rpe_f["rpe_rot_rmse_deg"]}
+                              "rpe_trans_rmse_m": rpe_f["rpe_trans_rmse_m"], "rpe_rot_rmse_deg": rpe_f["rpe_rot_rmse_deg"],
+                              "end_error_m": _end_error(gt, est_f, [])["end_error_m"]}
     if extra:
         m.update(extra)
     return m, ate_se3, ate_final
+
+
+def _end_error(gt: PoseSamples, est: PoseSamples, warnings: list[str]) -> dict:
+    """:func:`~aerovis_slam.slam.trajectory.end_error` as metrics entries (None, with a warning, when the
+    run's first seconds hold too few outputs to align)."""
+    try:
+        r = end_error(gt, est)
+    except DataError as exc:
+        warnings.append(f"end error not evaluated: {exc.problem}")
+        return {"end_error_m": None, "end_error_align_s": None}
+    return {"end_error_m": r["end_error_m"], "end_error_align_s": r["end_error_align_s"]}
 
 
 def write_metrics(path: str | os.PathLike, metrics: dict) -> Path:

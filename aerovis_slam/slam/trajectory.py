@@ -293,8 +293,11 @@ def ate(ref: PoseSamples, est: PoseSamples, *, align: str = "se3", max_diff_s: f
     }
 
 
-def _align(est, ref, with_scale: bool) -> float:
+def _align(est, ref, with_scale: bool, n: int = -1) -> float:
     """Umeyama-align evo trajectory ``est`` onto ``ref`` in place; returns the scale applied.
+
+    ``n``: the alignment is found from the first ``n`` pose pairs only (-1: all), and applied to
+    every pose (evo's ``align(n=...)``).
 
     evo's Umeyama alignment refuses exactly collinear (or coincident) positions: rotation about the
     line is then undetermined by positions alone (a slider run, a static camera). There the
@@ -306,17 +309,18 @@ def _align(est, ref, with_scale: bool) -> float:
     from evo.core.geometry import GeometryException, umeyama_alignment
 
     try:
-        _, _, s = est.align(ref, correct_scale=with_scale)
+        _, _, s = est.align(ref, correct_scale=with_scale, n=n)
         return float(s) if with_scale else 1.0
     except GeometryException:
         pass
-    pe, pr = est.positions_xyz, ref.positions_xyz
+    k = est.num_poses if n < 0 else n
+    pe, pr = est.positions_xyz[:k], ref.positions_xyz[:k]
     spread_e = float(np.sqrt(np.mean(np.sum((pe - pe.mean(0)) ** 2, axis=1))))
     spread_r = float(np.sqrt(np.mean(np.sum((pr - pr.mean(0)) ** 2, axis=1))))
     d = max(spread_r, 1.0)
     ratio = spread_r / spread_e if (with_scale and spread_e > 1e-12 and spread_r > 1e-12) else 1.0
-    Re = np.stack([T[:3, :3] for T in est.poses_se3])
-    Rr = np.stack([T[:3, :3] for T in ref.poses_se3])
+    Re = np.stack([T[:3, :3] for T in est.poses_se3[:k]])
+    Rr = np.stack([T[:3, :3] for T in ref.poses_se3[:k]])
     x = np.concatenate([pe] + [pe + Re[:, :, i] * (d / ratio) for i in range(3)])
     y = np.concatenate([pr] + [pr + Rr[:, :, i] * d for i in range(3)])
     r_a, t_a, s = umeyama_alignment(x.T, y.T, with_scale)
@@ -327,6 +331,36 @@ def _align(est, ref, with_scale: bool) -> float:
 
 
 ATE_ARRAYS = ("t_us", "error_m", "est_aligned", "ref_pose")
+
+#: seconds of a run's start that :func:`end_error` aligns on (the stretch before drift accumulates)
+END_ERROR_ALIGN_S = 1.5
+
+
+def end_error(ref: PoseSamples, est: PoseSamples, *, align_s: float = END_ERROR_ALIGN_S, max_gap_s: float = 0.1) -> dict:
+    """Drift at the end of a run: the position error (m) of ``est``'s last pose after an SE(3)
+    alignment of its first ``align_s`` seconds onto ``ref`` (the reference interpolated at the
+    estimate's times).
+
+    On a sequence that returns to its start this is the drift loop closure exists to remove; run
+    with and without loop closure, it compares the corrected end with the open-loop drift. Unlike
+    the ATE's alignment over the whole run, which spreads the drift over both ends, aligning the
+    start shows all of it at the end.
+
+    Returns:
+        ``{"end_error_m", "end_error_align_s", "end_error_t_s"}``: the error, the aligned span and
+        the time of the last pose after the first (s).
+
+    Raises:
+        DataError: fewer than 3 pose pairs within the first ``align_s`` seconds.
+    """
+    r, e = associate(ref, est, interpolate=True, max_gap_s=max_gap_s)
+    k = int(np.searchsorted(r.t, r.t[0] + align_s * 1e6, side="right"))
+    if k < 3:
+        raise DataError(None, f"{k} pose pair(s) in the first {align_s} s: the end error's SE(3) alignment needs at least 3")
+    ev_ref, ev_est = _evo(r), _evo(e)
+    _align(ev_est, ev_ref, False, n=k)
+    err = float(np.linalg.norm(ev_est.positions_xyz[-1] - ev_ref.positions_xyz[-1]))
+    return {"end_error_m": err, "end_error_align_s": float(align_s), "end_error_t_s": float(r.t[-1] - r.t[0]) / 1e6}
 
 
 def json_ready(result: dict) -> dict:
