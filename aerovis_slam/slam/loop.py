@@ -77,7 +77,7 @@ import numpy as np
 
 from ..errors import DataError
 from ..fileio import atomic_write_bytes
-from ..geometry import invert_T, pose_difference, project, rot_to_quat, so3_exp, transform_points
+from ..geometry import invert_T, pose_difference, project, rot_to_quat, rotation_angle_deg, so3_exp, transform_points
 from ..keypoints import Keypoints, match_keypoints, pair_similarity
 from .frontend import window_matches
 
@@ -706,7 +706,7 @@ class LoopCloser:
             group: dict[int, _HeldLoop] = {}
             matches = set()
             for h in self._held:
-                angle = np.degrees(np.arccos(np.clip((np.trace(h.rotation @ anchor.rotation.T) - 1) / 2, -1.0, 1.0)))
+                angle = float(rotation_angle_deg(h.rotation @ anchor.rotation.T))
                 if np.linalg.norm(h.shift - anchor.shift) <= tol_m and angle <= c["confirm_agree_deg"]:
                     matches.add(h.loop.match)
                     if h.loop.query not in group or h.loop.inliers > group[h.loop.query].loop.inliers:
