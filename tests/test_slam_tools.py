@@ -756,6 +756,13 @@ def test_bench_table_and_json(tmp_path, monkeypatch, empty_config):
     assert "| tiny_a |" in table and "failed" in table and "**1.00" in table  # the best ATE (learned, 1 cm) in bold
     assert "Final trajectory" in table and "| tiny_a | 0.00 % | 0.00 % | 0.00 % |  |" in table
     assert [r["ate_pct_final"] for r in rows if r["status"] == "ok"] == pytest.approx([0.0] * 3, abs=1e-9)
+    # end error: the estimate's z alternates by +-delta, so once its first 1.5 s are aligned (where the
+    # alternation averages out) the last pose is delta off; the final trajectory is the GT itself
+    ends = {(r["detector"], r["mode"]): (r["end_error_m"], r["end_error_m_final"]) for r in rows if r["status"] == "ok"}
+    assert ends[("learned", "sync")][0] == pytest.approx(0.01, abs=1e-3) and ends[("classical-orb", "sync")][0] == pytest.approx(0.03, abs=3e-3)
+    assert [e[1] for e in ends.values()] == pytest.approx([0.0] * 3, abs=1e-9)
+    cells = [f"{100 * ends[k][0]:.1f} (0.0)" for k in [("learned", "sync"), ("learned", "async"), ("classical-orb", "sync")]]
+    assert "End error [cm]" in table and f"| tiny_a | {' | '.join(cells)} |  |" in table and cells[0] == "1.0 (0.0)"
     s = bench_mod.summarize(rows)
     assert s["learned/sync"]["best_on"] == 1 and s["classical-orb/async"]["ok"] == 0
     # loops judged by the ground truth: counted where the loop's error is below the drift it corrected

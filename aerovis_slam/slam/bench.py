@@ -36,7 +36,7 @@ from ..errors import DataError
 from ..measurements import PoseSamples
 from .report import compute_metrics, plot_trajectory, write_metrics
 from ..fileio import atomic_write_text, prepare_out_dir
-from .trajectory import loop_errors, write_tum
+from .trajectory import END_ERROR_ALIGN_S, loop_errors, write_tum
 
 TRAJ_FILE = "traj.txt"
 FINAL_TRAJ_FILE = "traj_final.txt"  # complete runs only: outputs re-anchored to their keyframes' final estimates
@@ -454,6 +454,13 @@ def format_table(rows: list[dict], *, software: dict | None = None) -> str:
                   "and the last loop-closure pose graph, as OKVIS2's final trajectory; not available live): "
                   "ATE [% of path], live outputs above.", ""]
         lines += first_run_table(lambda r: "" if r.get("ate_pct_final") is None or r["status"] != "ok" else f"{r['ate_pct_final']:.2f} %")
+    if any(r.get("end_error_m") is not None for r in cell.values()):
+        lines += ["", "End error [cm]: the last output's distance from the ground truth after aligning the first "
+                  f"{END_ERROR_ALIGN_S:g} s, live (final trajectory): the drift a loop closure removes where a sequence "
+                  "returns to its start (compare with a `--no-loop` bench).", ""]
+        lines += first_run_table(lambda r: "" if r.get("end_error_m") is None or r["status"] != "ok" else
+                                 f"{100 * r['end_error_m']:.1f}" + ("" if r.get("end_error_m_final") is None
+                                                                    else f" ({100 * r['end_error_m_final']:.1f})"))
     if any(r.get("keypoint_error_px") is not None for r in cell.values()):
         lines += ["", "Keypoint error (`--keypoint-errors`): median distance [px] of the landmark observations to the "
                   "true projection of the scene point under each landmark's first sighting (after the track refinement, "
