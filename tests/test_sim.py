@@ -419,6 +419,33 @@ def test_cli_subprocess_entry_point(tmp_path):
     assert r.returncode == 2 and "no sequence(s) ['nope']" in r.stderr and "Traceback" not in r.stderr
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the parent-death signal is Linux's (prctl)")
+def test_workers_end_with_a_killed_parent(tmp_path):
+    """A generation stopped by SIGTERM (a scheduler, ``timeout``) cannot shut its pool down; its
+    worker processes must end with it instead of simulating the queued sequences on at full CPU."""
+    import signal
+
+    proc = subprocess.Popen([sys.executable, "-m", "aerovis_slam.sim.cli", "tiny", str(tmp_path / "out"), "--duration", "6",
+                             "--workers", "2", "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    children_file = Path(f"/proc/{proc.pid}/task/{proc.pid}/children")
+    children: set[int] = set()
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and proc.poll() is None:
+        children = {int(c) for c in children_file.read_text().split()} if children_file.exists() else set()
+        if len(children) >= 3:  # the two workers and multiprocessing's resource tracker
+            break
+        time.sleep(0.2)
+    assert proc.poll() is None and len(children) >= 3, "the workers never started"
+    time.sleep(2.0)  # both workers are simulating now
+    proc.send_signal(signal.SIGTERM)
+    proc.wait(timeout=30)
+    deadline = time.monotonic() + 15
+    while time.monotonic() < deadline and any(Path(f"/proc/{c}").exists() for c in children):
+        time.sleep(0.2)
+    alive = [c for c in children if Path(f"/proc/{c}").exists() and "Z" not in Path(f"/proc/{c}/stat").read_text().split()[2]]
+    assert alive == [], f"worker processes {alive} outlived their parent"
+
+
 def test_parallel_generation_matches_serial(tmp_path):
     """--workers changes only the speed: each sequence draws on its own seeds, so every dataset of
     every file is bit-identical, and the summary keeps the preset order."""
