@@ -679,7 +679,7 @@ class LoopCloser:
         c = self.config
         if int(c["confirmations"]) < 2 or loop.drift_deg > c["max_rotation_drift_deg"]:
             return
-        cap = c["confirm_drift_fraction"] * loop.travelled_m + c["drift_min_m"]
+        cap = self._drift_bound(loop.travelled_m, c["confirm_drift_fraction"])
         if loop.drift_m > cap:
             return
         measured = match.T_world_body @ loop.T_match_query  # the query's pose if the match keyframe's is right
@@ -845,9 +845,12 @@ class LoopCloser:
         cov = A @ cov_p @ A.T + np.diag(floor)
         return 0.5 * (cov + cov.T)
 
-    def _drift_bound(self, travelled_m: float) -> float:
-        """Largest translation correction (m) a loop may imply after ``travelled_m`` of odometry."""
-        return self.config["drift_fraction"] * travelled_m + self.config["drift_min_m"]
+    def _drift_bound(self, travelled_m: float, fraction: float | None = None) -> float:
+        """Largest translation correction (m) a loop may imply after ``travelled_m`` of odometry:
+        ``fraction`` (default ``drift_fraction``; ``confirm_drift_fraction`` for confirmed loops) of
+        it plus ``drift_min_m``."""
+        fraction = self.config["drift_fraction"] if fraction is None else fraction
+        return fraction * travelled_m + self.config["drift_min_m"]
 
     # -- pose graph --------------------------------------------------------------------------------
     def _submit(self) -> None:

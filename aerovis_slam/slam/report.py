@@ -141,8 +141,7 @@ def compute_metrics(result, gt: PoseSamples | None, *, sequence: str | os.PathLi
             span_s = ate_se3["duration_s"]
             delta = rpe_delta_s if span_s >= 2 * rpe_delta_s else max(0.05, round(span_s / 4 / 0.05) * 0.05)
             m.update(rpe(gt, est, delta_s=delta))
-            end_live = _end_error(gt, est, warnings)
-            m.update(end_live)
+            m.update(_end_error(gt, est, warnings))
             final = getattr(result, "pose7_final", None)
             if final is not None:
                 # the same alignment and RPE of the final trajectory (same times as the live outputs)
