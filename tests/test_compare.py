@@ -111,3 +111,30 @@ def test_compare_bundle_model_with_onnx_latency(tiny, tmp_path, capsys):
     assert lite[key] > 0 and lite["onnx"]["resolution"] == [b.width, b.height] and lite["onnx"]["batch"] == b.batch
     assert "onnx_fp32_ms" not in rows["orb"]  # classical baselines have no network to time
     assert lite["pairs"] == rows["orb"]["pairs"] > 0
+
+
+def test_onnx_latency_times_every_model_at_one_size(tiny, tmp_path):
+    """A MaxViT model (sides multiples of 40) and a convolutional one (multiples of 8) are both timed at
+    400x240, the largest size both accept, so that their latency ratio compares the same input."""
+    from types import SimpleNamespace
+
+    from aerovis_train.eval.compare import markdown_table, onnx_figures
+
+    torch.manual_seed(0)
+    conv = build_model(DT_CFG).eval()
+    vit_cfg = {"name": "vit", "encoder": "maxvit", "encoder_conf": {"width_mult": 0.25, "out_channels": 32},
+               "in_channels": 8, "descriptor_dim": 16, "head_width": 16, "mcts": {"kind": "ne", "params": [0.03, 0.1, 0.3, 1.0]}}
+    vit = build_model(vit_cfg).eval()
+    assert (conv.size_multiple, vit.size_multiple) == (8, 40)
+    methods = [SimpleNamespace(label=name, detector=SimpleNamespace(model=m)) for name, m in (("conv", conv), ("vit", vit))]
+    seq = sorted(tiny.glob("*.h5"))[0]
+    figures = onnx_figures(methods, calibration=seq, repeats=2, warmup=1)
+    for name in ("conv", "vit"):
+        assert figures[name]["onnx_fp32_ms"] > 0
+        assert figures[name]["onnx"]["resolution"] == [400, 240] and figures[name]["onnx"]["batch"] == 2
+    rows = [{"method": n, "kind": "learned", "mcts": "ne", "auc5": 1.0, "auc10": 2.0, "auc20": 3.0, "matches": 1.0,
+             "inlier_ratio": 0.5, "latency_ms": 1.0, **figures[n]} for n in ("conv", "vit")]
+    assert "ONNX FP32 (ms, 2x400x240)" in markdown_table(rows)
+    # alone, the convolutional model keeps the full 424x240
+    alone = onnx_figures(methods[:1], calibration=seq, repeats=2, warmup=1)
+    assert alone["conv"]["onnx"]["resolution"] == [424, 240]

@@ -24,9 +24,9 @@ AUC in percent (rotation error, the SuperEvent metric), ``matches`` per pair, ``
 mean over pairs, ``latency_ms`` the detector's mean time per frame in this run (learned models in
 PyTorch eager mode on this machine, one MCTS at the sequence's resolution; classical ones in
 OpenCV; a bundle directory given as a model runs in ONNX Runtime). ``--onnx-latency`` adds
-``onnx_fp32_ms``: the ONNX Runtime FP32 latency of a stereo batch of 2 at 424x240 (cropped to the
-model's size multiple), the deployment figure that ``metrics.json`` of a training job holds too,
-timed round-robin for all models in one run (see :func:`onnx_figures`). ``--out DIR`` writes
+``onnx_fp32_ms``: the ONNX Runtime FP32 latency of a stereo batch of 2 at one resolution for all
+models (424x240 cropped to what every compared model accepts: 400x240 with a MaxViT model among
+them), timed round-robin for all models in one run (see :func:`onnx_figures`). ``--out DIR`` writes
 ``compare.json`` (summaries, per-sequence and per-pair results, the command), ``compare.md``,
 ``compare.csv`` and, with ``--onnx-latency``, the timed bundles under ``DIR/bundles``.
 """
@@ -189,11 +189,13 @@ def onnx_figures(methods: list[Method], *, calibration: Path, keep_dir: str | Pa
                  warmup: int = 3) -> dict[str, dict]:
     """ONNX Runtime latency of each learned method, timed together.
 
-    A PyTorch model is exported to an FP32 bundle of a stereo batch at 424x240 (cropped to its size
-    multiple; :func:`aerovis_train.search.metrics.export_fp32_bundle`); a bundle given as the model is
-    timed as it is (its own precision and resolution). All bundles are then timed round-robin in one
-    :func:`aerovis_slam.bundle.benchmark_bundles` run, so that load from other processes hits them
-    alike and their ratios stay meaningful on a busy machine.
+    Every PyTorch model is exported to an FP32 bundle of a stereo batch at one common resolution: 424x240
+    cropped to the least common multiple of the models' size multiples (:func:`common_latency_resolution`:
+    400x240 as soon as a MaxViT model, whose sides are multiples of 40, is among them), so that speed
+    ratios compare the same input (:func:`aerovis_train.search.metrics.export_fp32_bundle`). A bundle
+    given as the model is timed as it is (its own precision and resolution). All bundles are then timed
+    round-robin in one :func:`aerovis_slam.bundle.benchmark_bundles` run, so that load from other
+    processes hits them alike and their ratios stay meaningful on a busy machine.
 
     Returns:
         Per label: ``onnx_fp32_ms`` (median inference of an FP32 bundle; ``onnx_ms`` and
@@ -206,6 +208,8 @@ def onnx_figures(methods: list[Method], *, calibration: Path, keep_dir: str | Pa
     from aerovis_train.search.metrics import export_fp32_bundle, latency_record
 
     out: dict[str, dict] = {}
+    models = [m.detector.model for m in methods if getattr(m.detector, "bundle", None) is None]
+    height, width = common_latency_resolution(models)
     with tempfile.TemporaryDirectory(prefix="aerovis-compare-") as tmp:
         root = Path(keep_dir) if keep_dir is not None else Path(tmp)
         timed: list[tuple[Method, Path, dict]] = []
@@ -217,7 +221,8 @@ def onnx_figures(methods: list[Method], *, calibration: Path, keep_dir: str | Pa
                 timed.append((m, bundle.path, info))
                 continue
             try:
-                path, info = export_fp32_bundle(m.detector.model, root / f"{m.label}_fp32", calibration=calibration)
+                path, info = export_fp32_bundle(m.detector.model, root / f"{m.label}_fp32", calibration=calibration,
+                                                height=height, width=width)
             except Exception as exc:  # noqa: BLE001 - reported per model; the others are still timed
                 print(f"aerovis-eval: {m.label}: ONNX latency not measured ({type(exc).__name__}: {exc})", file=sys.stderr)
                 out[m.label] = {"onnx_fp32_ms": None, "onnx_error": f"{type(exc).__name__}: {exc}"}
@@ -231,6 +236,32 @@ def onnx_figures(methods: list[Method], *, calibration: Path, keep_dir: str | Pa
     return out
 
 
+def common_latency_resolution(models) -> tuple[int, int]:
+    """(height, width) at which :func:`onnx_figures` times all ``models``: the latency resolution (424x240)
+    cropped to the least common multiple of their ``size_multiple`` (8 for the convolutional encoders,
+    40 for MaxViT), i.e. the largest size every one of them accepts.
+
+    Example:
+        >>> from types import SimpleNamespace as M
+        >>> common_latency_resolution([M(size_multiple=8)]), common_latency_resolution([M(size_multiple=8), M(size_multiple=40)])
+        ((240, 424), (240, 400))
+    """
+    import math
+
+    from aerovis_train.search.metrics import latency_resolution
+
+    return latency_resolution(math.lcm(1, *(int(getattr(m, "size_multiple", 8)) for m in models)))
+
+
+def onnx_resolution_text(rows: list[dict]) -> str:
+    """How the rows' ONNX figures were timed, e.g. ``2x400x240``; per-row sizes differ only where a
+    bundle was given as the model (``mixed``)."""
+    sizes = {(r["onnx"]["batch"], *r["onnx"]["resolution"]) for r in rows if r.get("onnx")}
+    if not sizes:
+        return "not timed"
+    return "x".join(str(v) for v in sizes.pop()) if len(sizes) == 1 else "mixed sizes: see compare.json"
+
+
 def _f(v, digits: int = 1) -> str:
     return "n/a" if v is None else f"{v:.{digits}f}"
 
@@ -241,7 +272,7 @@ def markdown_table(rows: list[dict]) -> str:
     head = "| method | kind | MCTS | AUC@5 | AUC@10 | AUC@20 | matches/pair | inlier ratio | latency (ms/frame) |"
     rule = "|---|---|---|---:|---:|---:|---:|---:|---:|"
     if onnx:
-        head += " ONNX FP32 (ms, 2x424x240) |"
+        head += f" ONNX FP32 (ms, {onnx_resolution_text(rows)}) |"
         rule += "---:|"
     lines = [head, rule]
     for r in rows:
@@ -286,7 +317,8 @@ def add_parser(sub) -> None:
     p.add_argument("--max-dt-s", type=float, default=2.0, help="pair window in seconds (protocol: 2)")
     p.add_argument("--max-angle-deg", type=float, default=45.0, help="largest rotation threshold in degrees (protocol: 45)")
     p.add_argument("--onnx-latency", action="store_true",
-                   help="also export each learned model and time ONNX Runtime FP32 on a stereo batch at 424x240")
+                   help="also export each learned model and time ONNX Runtime FP32 on a stereo batch at 424x240 "
+                        "(400x240 when a MaxViT model is compared: one size for all)")
     p.add_argument("--out", help="folder for compare.json, compare.md, compare.csv (and bundles/ with --onnx-latency)")
     p.add_argument("--quiet", action="store_true", help="no progress bars or table on stderr")
 

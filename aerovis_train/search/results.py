@@ -149,8 +149,9 @@ def section_all(cmp: dict) -> str:
         + (f"; left out (no 45 deg rotation within 2 s, so the protocol forms no pair): {left}" if left else "") + ".",
         "Rotation AUC in percent (SuperEvent protocol: mutual nearest neighbours, plain RANSAC essential matrix). "
         "`latency` is the detector's time per frame in that run (learned models in PyTorch eager mode, one MCTS at the "
-        "sequence's resolution; classical ones in OpenCV); `ONNX FP32` is a stereo batch of 2 at 424x240 "
-        "(400x240 for the MaxViT models, whose sides must be multiples of 40) in ONNX Runtime.",
+        "sequence's resolution; classical ones in OpenCV); `ONNX FP32` is a stereo batch in ONNX Runtime at the size "
+        "in its header, one size for every model: 424x240 cropped to what all of them accept (400x240 with a MaxViT "
+        "model, whose sides must be multiples of 40).",
         "",
         markdown_table(rows),
     ]
@@ -278,6 +279,8 @@ def section_seed_ablation(cmp: dict, methods: str | None = None) -> tuple[str, d
 
 
 def section_lite(cmp: dict) -> tuple[str, dict]:
+    from aerovis_train.eval.compare import onnx_resolution_text
+
     by = _rows_by_method(cmp)
     lite, plus, se = by.get("superlite"), by.get("superevent_plus"), by.get("superevent")
     lines = ["## SuperLitE vs SuperEvent+: accuracy and speed", "", f"Command: `{cmp['command']}`", ""]
@@ -296,7 +299,8 @@ def section_lite(cmp: dict) -> tuple[str, dict]:
               f"| AUC@10 (%) | {_f(lite['auc10'])} | {_f(plus['auc10'])} | {_f(ratio)} % |",
               f"| AUC@5 / AUC@20 (%) | {_f(lite['auc5'])} / {_f(lite['auc20'])} | {_f(plus['auc5'])} / {_f(plus['auc20'])} | |",
               f"| parameters (M) | {_f((lite.get('parameters') or 0) / 1e6, 2)} | {_f((plus.get('parameters') or 0) / 1e6, 2)} | |",
-              f"| ONNX Runtime FP32, stereo batch at 424x240 (ms) | {_f(a)} | {_f(b)} | {_f(speed, 2) + 'x faster' if speed else 'n/a'} |",
+              f"| ONNX Runtime FP32, stereo batch ({onnx_resolution_text([lite, plus])}, ms) | {_f(a)} | {_f(b)} | "
+              f"{_f(speed, 2) + 'x faster' if speed else 'n/a'} |",
               f"| PyTorch eager, one frame in the evaluation (ms) | {_f(lite['latency_ms'])} | {_f(plus['latency_ms'])} | "
               f"{_f(eager, 2) + 'x faster' if eager else 'n/a'} |", ""]
     if ci_txt:
