@@ -205,7 +205,7 @@ def onnx_figures(methods: list[Method], *, calibration: Path, keep_dir: str | Pa
     import tempfile
 
     from aerovis_slam.bundle import benchmark_bundles
-    from aerovis_train.search.metrics import export_fp32_bundle, latency_record
+    from aerovis_train.search.metrics import LATENCY_HEIGHT, LATENCY_WIDTH, export_fp32_bundle, latency_record
 
     out: dict[str, dict] = {}
     models = [m.detector.model for m in methods if getattr(m.detector, "bundle", None) is None]
@@ -223,6 +223,10 @@ def onnx_figures(methods: list[Method], *, calibration: Path, keep_dir: str | Pa
             try:
                 path, info = export_fp32_bundle(m.detector.model, root / f"{m.label}_fp32", calibration=calibration,
                                                 height=height, width=width)
+                if (height, width) != (LATENCY_HEIGHT, LATENCY_WIDTH):  # the record says why not the full 424x240
+                    info["requested"] = [LATENCY_WIDTH, LATENCY_HEIGHT]
+                    info["note"] = info["note"] or (f"{LATENCY_WIDTH}x{LATENCY_HEIGHT} cropped to {width}x{height}, "
+                                                    "the size every compared model accepts")
             except Exception as exc:  # noqa: BLE001 - reported per model; the others are still timed
                 print(f"aerovis-eval: {m.label}: ONNX latency not measured ({type(exc).__name__}: {exc})", file=sys.stderr)
                 out[m.label] = {"onnx_fp32_ms": None, "onnx_error": f"{type(exc).__name__}: {exc}"}
