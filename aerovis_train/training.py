@@ -8,7 +8,8 @@ leaderboard.
 Resuming: a run directory that already holds ``checkpoints/last.ckpt`` continues from it (run the
 same command with ``hydra.run.dir=<that directory>``); ``last.ckpt`` is refreshed every
 ``checkpoint_every_min`` minutes and at the end of each validation, so an interruption loses at most
-that much work. ``best.ckpt`` (highest validation AUC@10) is written atomically.
+that much work. ``best.ckpt`` (highest validation AUC@10) is written atomically. ``model.pt`` holds the best
+checkpoint's weights, or with ``weights=last`` the final step's (fixed-budget runs to compare).
 """
 
 from __future__ import annotations
@@ -31,6 +32,9 @@ from .checkpoints import AtomicCheckpointIO, lightning_model_state, save_slim
 from .data import EventPairDataset, make_loader, mcts_spec_from_config
 from .models import count_parameters
 from .module import KeypointModule
+
+#: what ``model.pt`` (and ``metrics.json``) hold: the highest validation AUC@10, or the final step
+WEIGHT_SELECTIONS = ("best", "last")
 
 
 class _EpochSetter(Callback):
@@ -241,7 +245,8 @@ def job_overrides() -> list[str] | None:
 
 
 def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
-    """Run one training job; returns the best validation AUC@10 (what a sweep optimises).
+    """Run one training job; returns the validation AUC@10 of the weights it keeps in ``model.pt``
+    (the best epoch's, or with ``weights=last`` the final step's): what a sweep optimises.
 
     Args:
         cfg: the composed run config (``conf/config.yaml``).
@@ -249,6 +254,10 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
             running Hydra job's (``python train.py ...``), if any.
     """
     t_start = time.time()
+    selection = str(cfg.get("weights", "best"))
+    if selection not in WEIGHT_SELECTIONS:
+        raise DataError(None, f"weights={selection!r}: expected one of {', '.join(WEIGHT_SELECTIONS)} "
+                              "(best: highest validation AUC@10; last: the final step)")
     L.seed_everything(int(cfg.seed), workers=True)
     torch.set_num_threads(int(cfg.get("torch_threads") or torch.get_num_threads()))
     run_dir = Path(cfg.run_dir)
@@ -289,22 +298,33 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
         # once (a second writer without the metrics could replace summary.json after the first)
         return best_auc
     best_path = best_cb.best_model_path or str(last)
-    slim = None
-    if best_path and Path(best_path).exists():
-        ckpt = torch.load(best_path, map_location="cpu", weights_only=False)
-        slim = save_slim(module.cfg["model"], lightning_model_state(ckpt), run_dir / "model.pt",
-                         meta={"val_auc10": best_auc, "seed": int(cfg.seed), "data": OmegaConf.to_container(cfg.data, resolve=True),
-                               "global_step": int(ckpt.get("global_step", 0))})
-    selected = best_path if best_path and Path(best_path).exists() else None
-    extra = {"best_val_auc10": best_auc, "checkpoint": selected, "weights": str(slim) if slim else None, "steps": int(trainer.global_step),
+    # weights=last: the final step's weights instead of the validation's pick (fixed-budget runs to compare)
+    selected_path = str(last) if selection == "last" else best_path
+    selected = selected_path if selected_path and Path(selected_path).exists() else None
+    slim_path = run_dir / "model.pt"
+    extra = {"best_val_auc10": best_auc, "checkpoint": selected, "weights_selection": selection,
+             "weights": str(slim_path) if selected else None, "steps": int(trainer.global_step),
              "train_wall_s": round(time.time() - t_start, 1), "seed": int(cfg.seed), "run_dir": str(run_dir),
              "crop": list(dataset.crop) if dataset.crop else None}
     metrics_path = _write_metrics(cfg, module, selected, val_loader, (val_paths or train_paths)[0],
                                   overrides if overrides is not None else job_overrides(), run_dir, extra)
+    selected_auc = best_auc
+    if selection == "last":
+        # the final weights' own validation score (re-validated in metrics.json), not the best epoch's
+        auc10 = json.loads(Path(metrics_path).read_text()).get("auc10") if metrics_path else None
+        selected_auc = float(auc10) if auc10 is not None else float("nan")
+    slim = None
+    if selected:
+        ckpt = torch.load(selected, map_location="cpu", weights_only=False)
+        slim = save_slim(module.cfg["model"], lightning_model_state(ckpt), slim_path,
+                         meta={"val_auc10": selected_auc, "seed": int(cfg.seed), "data": OmegaConf.to_container(cfg.data, resolve=True),
+                               "global_step": int(ckpt.get("global_step", 0)), "selection": selection})
     summary = {
         "model": cfg.model.name,
         "best_val_auc10": best_auc,
         "best_checkpoint": best_path,
+        "weights_selection": selection,
+        "weights_val_auc10": selected_auc,
         "weights": str(slim) if slim else None,
         "steps": int(trainer.global_step),
         "epochs": int(trainer.current_epoch),
@@ -322,10 +342,11 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
     tmp.write_text(json.dumps(summary, indent=2))
     tmp.replace(run_dir / "summary.json")
     print(f"\n{cfg.model.name}: best val AUC@10 {best_auc:.2f} % after {summary['steps']} steps ({summary['wall_s']:.0f} s)")
-    print(f"  weights     {summary['weights']}\n  checkpoint  {best_path}\n  config      {summary['config']}\n"
+    print(f"  weights     {summary['weights']} ({'final step' if selection == 'last' else 'best validation'}, "
+          f"val AUC@10 {selected_auc:.2f} %)\n  checkpoint  {selected}\n  config      {summary['config']}\n"
           f"  logs        {summary['logs']} (tensorboard: {run_dir / 'tensorboard'})\n  summary     {run_dir / 'summary.json'}\n"
           f"  metrics     {summary['metrics']}")
-    return best_auc
+    return selected_auc
 
 
 def _write_metrics(cfg: DictConfig, module: KeypointModule, best_path: str | None, val_loader, calibration: Path,

@@ -240,6 +240,30 @@ def test_validation_pools_both_cameras_and_warns_when_few_pairs(tmp_path, sim_ca
     assert both.stderr.count("validation scores only 6 pairs (val.min_pairs=100)") == 1
 
 
+def test_weights_last_keeps_the_final_step(tmp_path, sim_cache):
+    """weights=last: model.pt holds the final step's weights (those of last.ckpt, step 4 of two
+    2-step epochs), whichever epoch validated best, and says so; an unknown choice is refused."""
+    import torch
+
+    from aerovis_train.checkpoints import lightning_model_state
+
+    run = tmp_path / "run"
+    res = _train(run, "weights=last", "data.crop=[40,56]", "trainer.max_steps=4", cache=sim_cache)
+    assert res.returncode == 0, res.stderr[-3000:]
+    slim = torch.load(run / "model.pt", map_location="cpu", weights_only=False)
+    last = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert (slim["meta"]["selection"], slim["meta"]["global_step"], int(last["global_step"])) == ("last", 4, 4)
+    for k, v in lightning_model_state(last).items():
+        assert torch.equal(slim["state_dict"][k], v), k
+    summary = json.loads((run / "summary.json").read_text())
+    metrics = json.loads((run / "metrics.json").read_text())
+    # the kept weights' own validation score, re-measured in metrics.json, is what the job reports
+    assert summary["weights_selection"] == "last" and summary["weights_val_auc10"] == pytest.approx(metrics["auc10"])
+    assert slim["meta"]["val_auc10"] == pytest.approx(metrics["auc10"])
+    bad = _train(tmp_path / "bad", "weights=newest", cache=sim_cache)
+    assert bad.returncode == 2 and "weights='newest': expected one of best, last" in bad.stderr and "Traceback" not in bad.stderr
+
+
 def test_fine_tuning_starts_from_the_given_weights(tmp_path, sim_cache):
     """init_weights=superlite: training starts from the shipped weights (one step at learning rate 0
     leaves every parameter exactly as shipped; BatchNorm's running statistics do move, so buffers are

@@ -7,7 +7,7 @@ alike) and writes the result atomically with :func:`write_json`. A ``metrics.jso
 * the architecture (``model``, ``encoder``, ``encoder_conf``, ``descriptor_dim``, ``mcts``);
 * ``parameters`` and ``flops`` (one image at the latency resolution, see below; the convention of
   :func:`aerovis_train.models.count_flops`: 2 FLOPs per multiply-add);
-* ``auc5``, ``auc10``, ``auc20`` (percent): the relative-pose AUC of the selected (best) checkpoint
+* ``auc5``, ``auc10``, ``auc20`` (percent): the relative-pose AUC of the selected checkpoint (the best, or the last with ``weights=last``)
   on the validation split, re-measured with the training job's own validation code;
 * ``latency_ms``: ONNX Runtime FP32 latency (median) of a stereo batch of 2 MCTS at 424x240,
   cropped down to the model's size multiple (400x240 for MaxViT, whose sides must be multiples
