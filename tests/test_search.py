@@ -282,6 +282,7 @@ def test_results_page_verdicts(tmp_path):
     text = (tmp_path / "docs" / "results.md").read_text()
     assert "25.0 % (95 % interval +28.9 to +28.9 %, paired bootstrap over 3 start frames) (paper: +18.7 %)" in text
     assert "**not met** (weakest learned: superevent 32.0 %, strongest classical: orb 33.0 %)" in text
+    assert "The interval resamples the pairs of one training run per model, not the training" in text
     # the per-sequence table lists the methods with per-sequence results, in the summary's order
     assert "| method | a (6 pairs) |\n|---|---:|\n| superevent_plus | 81.7 |\n| superevent | 63.3 |" in text
     assert "Best on each sequence: a: superevent_plus." in text
@@ -307,7 +308,8 @@ def test_results_seed_ablation(tmp_path):
                        for m, e in err.items()}}
     write_json(tmp_path / "seeds" / "compare.json", cmp)
     # the shipped superlite (MCTS_Ne, 1 deg) is not one of the runs: the label filter leaves it out
-    r = write_results(tmp_path / "results.md", ablation=tmp_path / "seeds", ablation_methods=r"^(ne|dt)\d+$")
+    r = write_results(tmp_path / "results.md", ablation=tmp_path / "seeds", ablation_methods=r"^(ne|dt)\d+$",
+                      ablation_title="SuperLitE, two seeds")
     v = r["verdicts"]["seed_ablation"]
     assert v["runs"] == {"ne": 2, "dt": 2} and v["ne_beats_dt"]
     # means 43.5/60 vs 38/60: +14.47 %. A resample draws ne0 twice (+28.9 %), once (+14.5 %) or never (0 %) with
@@ -320,6 +322,8 @@ def test_results_seed_ablation(tmp_path):
     assert "MCTS_Ne 72.5 ± 13.0 % over 2 runs (63.3-81.7), MCTS_dt 63.3 ± 0.0 % over 2 runs (63.3-63.3)" in text
     assert "(means): +14.5 % (95 % interval +0.0 to +28.9 %, bootstrap over 3 start frames and the runs of each side)" in text
     assert "| superlite |" not in text and "| orb |" not in text
+    assert "## MCTS_Ne vs MCTS_dt over several training runs: SuperLitE, two seeds\n" in text
+    assert "--ablation-methods '^(ne|dt)\\d+$' --ablation-title 'SuperLitE, two seeds'" in text
     # without the filter the shipped MCTS_Ne model joins its side; a side without models is reported, not divided by
     r = write_results(tmp_path / "r2.md", ablation=tmp_path / "seeds", ablation_methods="^ne")
     assert r["verdicts"]["seed_ablation"]["ne_beats_dt"] is None and "Not measured: no learned MCTS_dt model" in (tmp_path / "r2.md").read_text()

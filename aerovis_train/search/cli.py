@@ -8,7 +8,7 @@
         jobs on different machines or under different load become comparable), then summarize again
     aerovis-search optuna [--search optuna] [search.n_trials=20] [TRAIN OVERRIDES ...]
         guided search configured by conf/search/<name>.yaml (see aerovis_train/search/optuna_search.py)
-    aerovis-search results [--compare DIR] [--ablation DIR [--ablation-methods REGEX]] [--search DIR ...] [--out docs/results.md]
+    aerovis-search results [--compare DIR] [--ablation DIR [--ablation-methods REGEX] [--ablation-title TEXT]] [--search DIR ...] [--out docs/results.md]
         the results page from the outputs of `aerovis-eval compare` and of searches
 
 A grid search is Hydra's own: ``python train.py -m model.encoder=vgg_lite,vgg,mobilenetv3,maxvit
@@ -50,6 +50,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--ablation", help="an `aerovis-eval compare --out` folder with several training runs (seeds) of MCTS_Ne and "
                                       "MCTS_dt models: their mean AUC@10 compared")
     p.add_argument("--ablation-methods", help="regular expression: only the --ablation methods whose label matches it")
+    p.add_argument("--ablation-title", help="what the --ablation runs are (e.g. the network), added to its section's heading")
     p.add_argument("--search", action="append", default=[], help="a search folder (repeatable)")
     p.add_argument("--out", default="docs/results.md", help="output Markdown (default docs/results.md)")
     p.add_argument("--top", type=int, default=20, help="leaderboard rows per search (default 20)")
@@ -83,7 +84,8 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "results":
             from .results import write_results
 
-            r = write_results(args.out, args.compare, args.search, args.top, args.ablation, args.ablation_methods)
+            r = write_results(args.out, args.compare, args.search, args.top, args.ablation, args.ablation_methods,
+                              args.ablation_title)
             print(f"wrote {r['out']}", file=sys.stderr)
             print(json.dumps(r))
         sys.stdout.flush()
