@@ -306,13 +306,12 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
              "weights": str(slim_path) if selected else None, "steps": int(trainer.global_step),
              "train_wall_s": round(time.time() - t_start, 1), "seed": int(cfg.seed), "run_dir": str(run_dir),
              "crop": list(dataset.crop) if dataset.crop else None}
-    metrics_path = _write_metrics(cfg, module, selected, val_loader, (val_paths or train_paths)[0],
-                                  overrides if overrides is not None else job_overrides(), run_dir, extra)
+    metrics_path, metrics = _write_metrics(cfg, module, selected, val_loader, (val_paths or train_paths)[0],
+                                           overrides if overrides is not None else job_overrides(), run_dir, extra)
     selected_auc = best_auc
     if selection == "last":
-        # the final weights' own validation score (re-validated in metrics.json), not the best epoch's
-        auc10 = json.loads(Path(metrics_path).read_text()).get("auc10") if metrics_path else None
-        selected_auc = float(auc10) if auc10 is not None else float("nan")
+        # the final weights' own validation score (re-validated for metrics.json), not the best epoch's
+        selected_auc = float(metrics["auc10"]) if metrics["auc10"] is not None else float("nan")
     slim = None
     if selected:
         ckpt = torch.load(selected, map_location="cpu", weights_only=False)
@@ -349,19 +348,20 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
     return selected_auc
 
 
-def _write_metrics(cfg: DictConfig, module: KeypointModule, best_path: str | None, val_loader, calibration: Path,
-                   overrides: list[str] | None, run_dir: Path, extra: dict) -> Path:
+def _write_metrics(cfg: DictConfig, module: KeypointModule, checkpoint: str | None, val_loader, calibration: Path,
+                   overrides: list[str] | None, run_dir: Path, extra: dict) -> tuple[Path, dict]:
     """``run_dir/metrics.json`` of the job (:mod:`aerovis_train.search.metrics`): the selected
-    checkpoint is re-validated with the module's own validation step (so AUC@5 and AUC@20 belong to
-    the same checkpoint as the AUC@10 that selected it), then parameters, FLOPs and ONNX latency."""
+    checkpoint is re-validated with the module's own validation step (so AUC@5, AUC@10 and AUC@20
+    belong to the weights that ``model.pt`` keeps), then parameters, FLOPs and ONNX latency.
+    Returns the file's path and its contents."""
     from .search.metrics import METRICS_FILE, job_metrics, write_json
 
     val = None
-    if best_path is not None:
+    if checkpoint is not None:
         # a separate, silent trainer: the run's loggers and checkpoints are left as fit() left them
         checker = L.Trainer(accelerator=cfg.trainer.accelerator, devices=1, logger=False, enable_checkpointing=False,
                             enable_progress_bar=False, enable_model_summary=False)
-        res = checker.validate(module, val_loader, ckpt_path=best_path, verbose=False, weights_only=False)
+        res = checker.validate(module, val_loader, ckpt_path=checkpoint, verbose=False, weights_only=False)
         if res and "val/auc10" in res[0]:
             val = {k.split("/", 1)[1]: float(v) for k, v in res[0].items() if k.startswith("val/")}
     mc = OmegaConf.to_container(cfg.metrics, resolve=True) if cfg.get("metrics") is not None else {}
@@ -372,4 +372,4 @@ def _write_metrics(cfg: DictConfig, module: KeypointModule, best_path: str | Non
     auc = "n/a" if metrics["auc10"] is None else f"{metrics['auc5']:.1f} / {metrics['auc10']:.1f} / {metrics['auc20']:.1f} %"
     print(f"  val AUC@5/10/20 {auc}, {metrics['parameters'] / 1e6:.2f} M params, {metrics['flops'] / 1e9:.2f} GFLOP, latency {lat}",
           file=sys.stderr)
-    return path
+    return path, metrics
