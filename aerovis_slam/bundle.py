@@ -439,11 +439,17 @@ def synthetic_mcts(bundle: Bundle, batch: int | None = None, *, seed: int = 0, h
 
 
 def benchmark_bundles(bundles: Sequence[Bundle | str | Path], *, repeats: int = 50, warmup: int = 5,
-                      threads: int | None = None, height: int | None = None, width: int | None = None) -> list[dict]:
+                      threads: int | None = None, height: int | None = None, width: int | None = None,
+                      block: int = 5) -> list[dict]:
     """Latency of each bundle for its batch at its resolution, measured in one run.
 
-    Repeats go round-robin over the bundles (bundle 1, 2, ..., 1, 2, ...) so that load from other
-    processes hits all of them alike and their ratios stay meaningful on a busy machine.
+    Repeats go round-robin over the bundles in blocks (``block`` runs of bundle 1, ``block`` runs of
+    bundle 2, ..., then bundle 1 again) so that load from other processes hits all of them alike and
+    their ratios stay meaningful on a busy machine. Each block starts with one untimed run: ONNX
+    Runtime's intra-op threads spin for a while after a run (``session.intra_op.allow_spinning``, on
+    by default and in the runtime), so the previous session's threads still hold the cores during
+    the first run after a switch. On 2 cores that first run of a 60 ms network takes about 95 ms;
+    timing every switch (blocks of 1) measured the switching rather than the network.
     ``height`` x ``width`` replaces the bundles' own resolution (to compare models at one size; every
     bundle must take it, see :meth:`Bundle.check_size`).
 
@@ -451,8 +457,10 @@ def benchmark_bundles(bundles: Sequence[Bundle | str | Path], *, repeats: int = 
         One dict per bundle: ``bundle``, ``model``, ``precision``, ``target``, ``batch``, ``height``,
         ``width``, ``latency_ms_p50`` / ``latency_ms_p90`` (ONNX Runtime inference alone),
         ``total_ms_p50`` (inference + NMS, top-k = max(H, W) / 2, descriptor sampling and int8
-        quantisation for the whole batch), ``threads``, ``repeats``.
+        quantisation for the whole batch), ``threads``, ``repeats``, ``block``.
     """
+    if repeats < 1 or warmup < 0 or block < 1:
+        raise ValueError(f"repeats and block must be at least 1 and warmup at least 0, got repeats={repeats}, warmup={warmup}, block={block}")
     dets = [BundleDetector(b, threads=threads) for b in bundles]
     if height or width:
         for d in dets:
@@ -460,12 +468,18 @@ def benchmark_bundles(bundles: Sequence[Bundle | str | Path], *, repeats: int = 
     inputs = [synthetic_mcts(d.bundle, height=height, width=width) for d in dets]
     infer: list[list[float]] = [[] for _ in dets]
     total: list[list[float]] = [[] for _ in dets]
-    for r in range(warmup + repeats):
-        for i, (d, x) in enumerate(zip(dets, inputs)):
+    for d, x in zip(dets, inputs):
+        for _ in range(warmup):
             d.detect(x, top_k=max(x.shape[-2:]) // 2)
-            if r >= warmup:
-                infer[i].append(d.last_latency_ms)
-                total[i].append(d.last_total_ms)
+    switch_run = len(dets) > 1  # one bundle alone never switches
+    while len(infer[0]) < repeats:
+        for i, (d, x) in enumerate(zip(dets, inputs)):
+            n = min(block, repeats - len(infer[i]))
+            for r in range(switch_run + n):
+                d.detect(x, top_k=max(x.shape[-2:]) // 2)
+                if r >= switch_run:
+                    infer[i].append(d.last_latency_ms)
+                    total[i].append(d.last_total_ms)
     out = []
     for d, x, inf, tot in zip(dets, inputs, infer, total):
         b = d.bundle
@@ -474,7 +488,7 @@ def benchmark_bundles(bundles: Sequence[Bundle | str | Path], *, repeats: int = 
                     "latency_ms_p50": round(float(np.percentile(inf, 50)), 3),
                     "latency_ms_p90": round(float(np.percentile(inf, 90)), 3),
                     "total_ms_p50": round(float(np.percentile(tot, 50)), 3),
-                    "threads": threads, "repeats": repeats})
+                    "threads": threads, "repeats": repeats, "block": block})
     return out
 
 

@@ -31,10 +31,12 @@ def main(argv: list[str] | None = None) -> int:
     p_train.add_argument("--device", default="cpu", help="where the model trains: cpu (default) or cuda")
     p_train.add_argument("overrides", nargs="*", help="extra train.py overrides, e.g. data.num_workers=2")
     p_det = sub.add_parser("detector", help="inference and inference + post-processing latency of model bundles (one line each, "
-                                            "measured round-robin in one run)")
+                                            "measured round-robin in blocks in one run)")
     p_det.add_argument("bundles", nargs="+", help="bundle directories written by aerovis-export")
     p_det.add_argument("--repeats", type=int, default=50)
     p_det.add_argument("--warmup", type=int, default=5)
+    p_det.add_argument("--block", type=int, default=5,
+                       help="timed runs of one bundle before switching to the next, each block after one untimed run (default 5)")
     p_det.add_argument("--threads", type=int, default=None, help="ONNX Runtime intra-op threads (default: its own, one per core)")
     p_det.add_argument("--height", type=int, default=None, help="measure at this height instead of each bundle's own")
     p_det.add_argument("--width", type=int, default=None, help="measure at this width instead of each bundle's own")
@@ -70,8 +72,8 @@ def main(argv: list[str] | None = None) -> int:
 
         try:
             results = benchmark_bundles(args.bundles, repeats=args.repeats, warmup=args.warmup, threads=args.threads,
-                                        height=args.height, width=args.width)
-        except DataError as exc:
+                                        height=args.height, width=args.width, block=args.block)
+        except (DataError, ValueError) as exc:
             print(f"aerovis-bench: error: {exc}", file=sys.stderr)
             return 2
         for r in results:

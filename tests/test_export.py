@@ -366,6 +366,40 @@ def test_bench_detector_prints_one_line_per_bundle(fp32_bundle, capsys):
         assert 0 < r["latency_ms_p50"] <= r["latency_ms_p90"] and r["total_ms_p50"] >= r["latency_ms_p50"]
 
 
+def test_benchmark_bundles_times_blocks_after_one_untimed_run_per_switch(fp32_bundle, monkeypatch):
+    """Two bundles, 7 repeats in blocks of 3: A A A A | B B B B | A A A A | B B B B | A A | B B after
+    one warm-up each, where the first run of every block is untimed (the other session's spinning
+    threads hold the cores then); each bundle is timed exactly 7 times."""
+    from aerovis_slam import bundle as bundle_mod
+
+    calls = []
+    real_detect = bundle_mod.BundleDetector.detect
+
+    def counting_detect(self, batch, **kw):
+        calls.append(self.tag)
+        return real_detect(self, batch, **kw)
+
+    monkeypatch.setattr(bundle_mod.BundleDetector, "detect", counting_detect)
+    real_init = bundle_mod.BundleDetector.__init__
+    tags = iter("AB")
+
+    def tagging_init(self, *a, **kw):
+        real_init(self, *a, **kw)
+        self.tag = next(tags)
+
+    monkeypatch.setattr(bundle_mod.BundleDetector, "__init__", tagging_init)
+    out = bundle_mod.benchmark_bundles([fp32_bundle, fp32_bundle], repeats=7, warmup=1, block=3)
+    assert "".join(calls) == "A" + "B" + "AAAA" + "BBBB" + "AAAA" + "BBBB" + "AA" + "BB"
+    assert [r["repeats"] for r in out] == [7, 7] and [r["block"] for r in out] == [3, 3]
+    # one bundle alone never switches: no untimed runs besides the warm-up
+    calls.clear()
+    tags = iter("C")
+    bundle_mod.benchmark_bundles([fp32_bundle], repeats=4, warmup=2, block=3)
+    assert "".join(calls) == "C" * 6
+    with pytest.raises(ValueError, match="block"):
+        bundle_mod.benchmark_bundles([fp32_bundle], repeats=4, block=0)
+
+
 def test_bench_blas_times_inference_after_products_per_blas_setting(fp32_bundle):
     from aerovis_slam.benchmarks import bench_blas
 
