@@ -472,7 +472,7 @@ def benchmark_bundles(bundles: Sequence[Bundle | str | Path], *, repeats: int = 
         for _ in range(warmup):
             d.detect(x, top_k=max(x.shape[-2:]) // 2)
     switch_run = len(dets) > 1  # one bundle alone never switches
-    while len(infer[0]) < repeats:
+    while dets and len(infer[0]) < repeats:
         for i, (d, x) in enumerate(zip(dets, inputs)):
             n = min(block, repeats - len(infer[i]))
             for r in range(switch_run + n):

@@ -398,6 +398,7 @@ def test_benchmark_bundles_times_blocks_after_one_untimed_run_per_switch(fp32_bu
     assert "".join(calls) == "C" * 6
     with pytest.raises(ValueError, match="block"):
         bundle_mod.benchmark_bundles([fp32_bundle], repeats=4, block=0)
+    assert bundle_mod.benchmark_bundles([], repeats=4) == []
 
 
 def test_bench_blas_times_inference_after_products_per_blas_setting(fp32_bundle):
