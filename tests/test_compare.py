@@ -133,6 +133,7 @@ def test_onnx_latency_times_every_model_at_one_size(tiny, tmp_path):
         assert figures[name]["onnx_fp32_ms"] > 0
         assert figures[name]["onnx"]["resolution"] == [400, 240] and figures[name]["onnx"]["batch"] == 2
         assert figures[name]["onnx"]["requested"] == [424, 240] and "cropped to 400x240" in figures[name]["onnx"]["note"]
+        assert figures[name]["onnx"]["block"] == 5  # timed in blocks between switches (benchmark_bundles' default)
     rows = [{"method": n, "kind": "learned", "mcts": "ne", "auc5": 1.0, "auc10": 2.0, "auc20": 3.0, "matches": 1.0,
              "inlier_ratio": 0.5, "latency_ms": 1.0, **figures[n]} for n in ("conv", "vit")]
     assert "ONNX FP32 (ms, 2x400x240)" in markdown_table(rows)

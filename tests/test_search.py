@@ -254,7 +254,8 @@ def test_results_page_verdicts(tmp_path):
 
     def row(method, kind, mcts, auc10, onnx=None, lat=10.0):
         return {"method": method, "kind": kind, "mcts": mcts, "auc5": auc10 / 2, "auc10": auc10, "auc20": auc10 * 1.4, "matches": 50.0,
-                "inlier_ratio": 0.5, "latency_ms": lat, "onnx_fp32_ms": onnx, "parameters": 900_000, "source": f"/w/{method}.pt"}
+                "inlier_ratio": 0.5, "latency_ms": lat, "onnx_fp32_ms": onnx, "parameters": 900_000, "source": f"/w/{method}.pt",
+                **({"onnx": {"latency_ms": onnx, "batch": 2, "resolution": [400, 240], "block": 5}} if onnx else {})}
 
     cmp = {"command": "aerovis-eval compare --data bench --onnx-latency --out X", "pairs": 303, "sequences": ["/c/a.h5", "/c/b.h5"],
            "skipped": ["/c/slider.h5"], "missing": [],
@@ -286,6 +287,7 @@ def test_results_page_verdicts(tmp_path):
     # the per-sequence table lists the methods with per-sequence results, in the summary's order
     assert "| method | a (6 pairs) |\n|---|---:|\n| superevent_plus | 81.7 |\n| superevent | 63.3 |" in text
     assert "Best on each sequence: a: superevent_plus." in text
+    assert "round-robin in blocks of 5 runs, each block after one untimed run" in text  # how the bundles were timed
     assert "aerovis-eval compare --data bench --onnx-latency --out X" in text and "| 1 | 1 | model.descriptor_dim=128 |" in text
     assert (tmp_path / "docs" / "results_search1_pareto.png").exists() and "(results_search1_pareto.png)" in text
 

@@ -102,7 +102,8 @@ def latency_record(stats: dict, info: dict, *, threads: int | None, bundle: str 
 
     Returns:
         ``{"latency_ms" (median), "latency_ms_p90", "total_ms_p50" (with post-processing), "resolution": [W, H],
-        "requested": [W, H], "batch", "precision", "runtime", "threads", "repeats", "loadavg", "note", "bundle"}``
+        "requested": [W, H], "batch", "precision", "runtime", "threads", "repeats", "block" (timed runs per
+        bundle between switches), "loadavg", "note", "bundle"}``
         (times in ms; ``loadavg``: the machine's 1-minute load average after timing, to judge contention).
     """
     import onnxruntime
@@ -115,6 +116,7 @@ def latency_record(stats: dict, info: dict, *, threads: int | None, bundle: str 
         "runtime": f"onnxruntime {onnxruntime.__version__}",
         "threads": threads,
         "repeats": int(stats["repeats"]),
+        "block": stats.get("block"),
         "loadavg": round(os.getloadavg()[0], 2),
         "bundle": bundle,
     }

@@ -134,6 +134,15 @@ def _rows_by_method(cmp: dict) -> dict[str, dict]:
     return {r["method"]: r for r in cmp["rows"]}
 
 
+def _onnx_timing_note(cmp: dict) -> str:
+    """How the run timed its bundles, when its records say (runs before 2026-12-04 do not)."""
+    blocks = {(r.get("onnx") or {}).get("block") for r in cmp["rows"]} - {None}
+    if len(blocks) != 1:
+        return ""
+    return (f" The bundles were timed in one run, round-robin in blocks of {blocks.pop()} runs, each block after one "
+            "untimed run (`aerovis_slam.bundle.benchmark_bundles`).")
+
+
 def section_all(cmp: dict) -> str:
     from aerovis_train.eval.compare import markdown_table
 
@@ -151,7 +160,7 @@ def section_all(cmp: dict) -> str:
         "`latency` is the detector's time per frame in that run (learned models in PyTorch eager mode, one MCTS at the "
         "sequence's resolution; classical ones in OpenCV); `ONNX FP32` is a stereo batch in ONNX Runtime at the size "
         "in its header, one size for every model: 424x240 cropped to what all of them accept (400x240 with a MaxViT "
-        "model, whose sides must be multiples of 40).",
+        "model, whose sides must be multiples of 40)." + _onnx_timing_note(cmp),
         "",
         markdown_table(rows),
     ]
