@@ -31,6 +31,8 @@ from aerovis_train.eval.pose import (
     evaluate_sequence,
     interpolate_poses,
     invert_transform,
+    oracle_matches,
+    oracle_pair_errors,
     plan_frames,
     pose_auc,
     relative_pose_error,
@@ -638,3 +640,102 @@ def test_cli_lag_on_tiny_and_bad_input(dot_sequence, tmp_path, capsys):
     assert main(["lag", "--data", dot_sequence, "--detector", "orb"]) == 2
     err = capsys.readouterr().err
     assert "dots.h5" in err and "frames" in err
+
+
+# --------------------------------------------------------------------------------------------
+# the protocol's ceiling: perfect matches of a method's keypoints (--oracle-noise-px)
+# --------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def tiny_dir(tiny_cache) -> Path:
+    from aerovis_slam.sim.cache import ensure_preset
+
+    return Path(ensure_preset("tiny", str(tiny_cache), progress=False))
+
+
+def test_oracle_matches_lie_on_the_epipolar_lines_of_the_recorded_gt(tiny_dir):
+    """Perfect matches come from the simulator's continuous trajectory and rendered depth; the pose
+    they are scored against comes from the file's GT (200 Hz samples, interpolated). A match must lie
+    on the epipolar line of that GT pose: the interpolation error over 5 ms is ~1e-5 m and ~1e-4 deg
+    here, far below 0.01 px at f ~ 50 px, while a wrong clock, extrinsic or frame direction would put
+    it pixels off. Each matched point is also the nearest surface at the second time (not hidden)."""
+    from aerovis_slam.slam.oracle import SceneTruth
+
+    seq = tiny_dir / "tiny_handheld.h5"
+    with Sequence(seq) as s:
+        cam, gt = s.calib.cameras["cam0"], s.gt
+    truth = SceneTruth(seq)
+    u, v = np.meshgrid(np.arange(2, cam.width - 2, 3), np.arange(2, cam.height - 2, 3))
+    xy0 = np.c_[u.ravel(), v.ravel()].astype(np.float64) + 0.25
+    t0, t1 = 300_000, 550_000
+    a, b = oracle_matches(truth, "cam0", cam, xy0, t0, t1)
+    assert len(a) > 0.3 * len(xy0)  # the camera moves, most of the room stays in view
+    assert {tuple(p) for p in a} <= {tuple(p) for p in xy0}
+    T_w_c = interpolate_poses(gt.t, gt.pose, np.array([t0, t1])) @ cam.T_imu_cam
+    T_1_0 = invert_transform(T_w_c[1]) @ T_w_c[0]
+    t = T_1_0[:3, 3]
+    assert np.linalg.norm(t) > 0.01  # a baseline: the epipolar lines are defined
+    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ T_1_0[:3, :3]
+    K = cam.K
+    x0 = np.c_[(a - K[:2, 2]) / np.diag(K)[:2], np.ones(len(a))]
+    x1 = np.c_[(b - K[:2, 2]) / np.diag(K)[:2], np.ones(len(b))]
+    lines = x0 @ E.T  # epipolar lines in the second image (normalised units)
+    dist_px = np.abs(np.sum(x1 * lines, axis=1)) / np.linalg.norm(lines[:, :2], axis=1) * K[0, 0]
+    assert dist_px.max() < 0.01
+    # visibility: the matched points' depth at t1 is the rendered depth at their pixel (within the
+    # occlusion test's 3 % + 2 cm); the points left out are hidden, behind or outside
+    depth1 = truth.depth(t1, "cam0", cam.T_imu_cam)
+    pts = truth.back_project(t0, "cam0", K, cam.T_imu_cam, a)
+    z1 = transform_points_(invert_transform(truth.T_world_body(t1) @ cam.T_imu_cam), pts)[:, 2]
+    c, r = np.round(b[:, 0]).astype(int), np.round(b[:, 1]).astype(int)
+    assert np.all(depth1[r, c] >= z1 - (0.03 * z1 + 0.02))
+
+
+def transform_points_(T, P):
+    return P @ T[:3, :3].T + T[:3, 3]
+
+
+def test_oracle_pair_errors_exact_noisy_and_counted():
+    """Exact matches score the 5-point solver's float error; noise of 2 px costs more than that;
+    keeping as many matches as zero own inliers is a failure (180 deg); the same generator state gives
+    the same result."""
+    kp0, kp1, K, K1, T, perm, _ = synthetic_pair(3, 0.0, n_out=0)
+    a = np.asarray(kp0.xy, np.float64)
+    b1 = np.asarray(kp1.xy, np.float64)[np.argsort(perm)]  # b1[k] is the partner of a[k], in camera 1's pixels
+    b = (np.c_[b1, np.ones(len(b1))] @ (K @ np.linalg.inv(K1)).T)[:, :2]  # the same rays in K's pixels (one K for both)
+    rows = oracle_pair_errors(a, b, K, T, 1.0, [0.0, 2.0], 0, estimator="usac_accurate", rng=np.random.default_rng(0))
+    assert [r["noise_px"] for r in rows] == [0.0, 2.0] and all(r["matches"] == 200 for r in rows)
+    assert rows[0]["rot_err_deg"] < 1e-2 and rows[0]["max_err_deg"] < 1e-2  # float32 keypoints, as in the exact test above
+    assert rows[1]["rot_err_deg"] > rows[0]["rot_err_deg"]
+    assert rows[0]["rot_err_deg_at_inliers"] == FAILURE_DEG == rows[1]["max_err_deg_at_inliers"]
+    again = oracle_pair_errors(a, b, K, T, 1.0, [0.0, 2.0], 0, estimator="usac_accurate", rng=np.random.default_rng(0))
+    assert again == rows
+    some = oracle_pair_errors(a, b, K, T, 1.0, [0.0], 20, rng=np.random.default_rng(1))[0]
+    assert some["rot_err_deg_at_inliers"] < 1.0  # 20 exact matches still fix the pose (plain RANSAC)
+
+
+def test_cli_pose_oracle_rows_leave_the_method_unchanged(dot_sequence, tmp_path, capsys):
+    """``--oracle-noise-px 0 1``: the JSON line gains one ``oracle`` row per level, the method's own
+    figures are those of the run without it; a sequence that the simulator did not write is refused
+    naming the file and the field. (A 1 s spin of the drone rig at half size, 212x120: ORB needs more
+    than the tiny preset's 64x48 pixels.)"""
+    from aerovis_slam.sim import SequenceSpec, write_sequence
+
+    seq = str(tmp_path / "spin.h5")
+    write_sequence(SequenceSpec("spin", rig="drone424", rig_scale=0.5, trajectory="spin", trajectory_seed=4, scene_seed=4,
+                                duration_s=1.0, frame_rate_hz=20, gt_rate_hz=200), seq)
+    pairs_args = ["--max-dt-s", "1", "--max-angle-deg", "10", "--quiet"]
+    assert cli.main(["pose", "--data", seq, "--detector", "orb"] + pairs_args) == 0
+    plain = json.loads(capsys.readouterr().out.strip())
+    assert plain["pairs"] >= 5 and plain["matches"] > 10
+    assert cli.main(["pose", "--data", seq, "--detector", "orb", "--oracle-noise-px", "0", "1"] + pairs_args) == 0
+    line = json.loads(capsys.readouterr().out.strip())
+    assert {k: line[k] for k in ("auc5", "auc10", "auc20", "pairs", "matches")} == {k: plain[k] for k in ("auc5", "auc10", "auc20", "pairs", "matches")}
+    assert [r["noise_px"] for r in line["oracle"]] == [0.0, 1.0]
+    for r in line["oracle"]:
+        assert r["matches"] > 0
+        assert all(0.0 <= r[f"auc{t}{s}"] <= 100.0 for t in (5, 10, 20) for s in ("", "_max", "_at_inliers"))
+    assert cli.main(["pose", "--data", dot_sequence, "--detector", "orb", "--oracle-noise-px", "1", "--quiet"] + SMALL_ARGS) == 2
+    err = capsys.readouterr().err
+    assert "meta.spec" in err and Path(dot_sequence).name in err
+    assert cli.main(["pose", "--data", seq, "--detector", "orb", "--oracle-noise-px", "-1"] + pairs_args) == 2
+    assert ">= 0" in capsys.readouterr().err

@@ -83,6 +83,99 @@ def simulator_of(sequence: str | os.PathLike):
     return Simulator(oracle_spec(sequence))
 
 
+class SceneTruth:
+    """Exact body poses and rendered z-depth of a sequence written by ``aerovis-sim``, at any time.
+
+    The one implementation of "where is the scene point under this pixel, and where does it appear
+    at another time", shared by the SLAM runtime's perfect tracks (:class:`ObservationOracle`) and the
+    relative-pose evaluation's perfect matches (:mod:`aerovis_train.eval.pose`, ``oracle_noise_px``).
+
+    Times ``t_us`` are on the simulator's clock, which is the GT's and the IMU's (µs). Cameras are
+    given by the name of the simulator's sensor (``cam0``, ``cam1``), whose rendered depth is looked
+    up, and by the intrinsics ``K`` and extrinsics ``T_body_cam`` (4, 4) of the pixels in question
+    (which may be scaled from the sensor's, as the runtime's MCTS resolution is).
+
+    Args:
+        sequence: the simulated ``.h5`` (errors: :func:`oracle_spec`); or
+        simulator: the rebuilt simulator itself.
+    """
+
+    def __init__(self, sequence: str | os.PathLike | None = None, *, simulator=None):
+        if simulator is None:
+            if sequence is None:
+                raise ValueError("SceneTruth needs a sequence or a simulator")
+            simulator = simulator_of(sequence)
+        self.sim = simulator
+        self._pose_cache: tuple[int, np.ndarray] | None = None
+        self._depth_cache: dict[tuple[int, str], np.ndarray] = {}
+
+    def sensor(self, name: str):
+        """The simulator's calibration of sensor ``name`` (KeyError naming the rig's sensors)."""
+        if name not in self.sim.rig.cameras:
+            raise KeyError(f"camera {name!r} is not in the simulator's rig {sorted(self.sim.rig.cameras)}")
+        return self.sim.rig.cameras[name]
+
+    def T_world_body(self, t_us: int) -> np.ndarray:
+        """(4, 4) true body pose at ``t_us`` (µs), from the simulator's continuous trajectory."""
+        if self._pose_cache is None or self._pose_cache[0] != t_us:
+            R, p, _, _ = self.sim.trajectory.kinematics(t_us * 1e-6)
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = R, p
+            self._pose_cache = (t_us, T)
+        return self._pose_cache[1]
+
+    def depth(self, t_us: int, sensor: str, T_body_cam: np.ndarray) -> np.ndarray:
+        """(H, W) true z-depth (m, inf: no surface) of sensor ``sensor`` at its own resolution; the
+        renders of one time are kept (the next time drops them)."""
+        key = (int(t_us), sensor)
+        if key not in self._depth_cache:
+            T_wc = self.T_world_body(t_us) @ T_body_cam
+            self._depth_cache = {k: v for k, v in self._depth_cache.items() if k[0] == t_us}  # one time at a time
+            self._depth_cache[key] = self.sim.scene.render(self.sensor(sensor), T_wc, t_us * 1e-6)[1]
+        return self._depth_cache[key]
+
+    def back_project(self, t_us: int, sensor: str, K: np.ndarray, T_body_cam: np.ndarray, xy: np.ndarray) -> np.ndarray:
+        """True world points (N, 3) under pixels ``xy`` (N, 2) of a camera with intrinsics ``K`` at
+        ``t_us``; NaN rows where the ray hits no surface or leaves the sensor. The depth is read at
+        the sensor pixel nearest to each ray."""
+        xy = np.asarray(xy, np.float64).reshape(-1, 2)
+        rays = unproject(xy, np.ones(len(xy)), np.asarray(K, np.float64))  # z = 1 in the camera frame
+        uv, _ = project(rays, np.asarray(self.sensor(sensor).K, np.float64))
+        u, v = np.round(uv[:, 0]).astype(np.int64), np.round(uv[:, 1]).astype(np.int64)
+        depth = self.depth(t_us, sensor, T_body_cam)
+        inside = (u >= 0) & (u < depth.shape[1]) & (v >= 0) & (v < depth.shape[0])
+        z = np.full(len(xy), np.nan)
+        z[inside] = depth[v[inside], u[inside]]
+        z[~np.isfinite(z)] = np.nan
+        T_wc = self.T_world_body(t_us) @ T_body_cam
+        return transform_points(T_wc, rays * z[:, None])
+
+    def project(self, t_us: int, K: np.ndarray, T_body_cam: np.ndarray, size: tuple[int, int], points_world: np.ndarray,
+                *, occluded_by: str | None = None, depth_tolerance: float = 0.03) -> np.ndarray:
+        """Exact pixels (N, 2) of world points in a camera of ``size`` (W, H) with intrinsics ``K`` at
+        ``t_us``; NaN behind the camera or outside the image.
+
+        With ``occluded_by`` (a sensor name) also NaN where that sensor's rendered depth at the
+        projection is nearer than the point by more than ``depth_tolerance`` (relative) + 2 cm: a
+        surface in front hides it. The depth is read at the nearest pixel, so a point on a depth edge
+        may count as hidden.
+        """
+        W, H = size
+        T_cw = invert_T(self.T_world_body(t_us) @ T_body_cam)
+        pc = transform_points(T_cw, np.asarray(points_world, np.float64).reshape(-1, 3))
+        uv, _ = project(pc, np.asarray(K, np.float64))
+        seen = (pc[:, 2] > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= W - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= H - 0.5)
+        if occluded_by is not None and seen.any():
+            depth = self.depth(t_us, occluded_by, T_body_cam)
+            uvs, _ = project(pc[seen], np.asarray(self.sensor(occluded_by).K, np.float64))
+            u = np.clip(np.round(uvs[:, 0]).astype(np.int64), 0, depth.shape[1] - 1)
+            v = np.clip(np.round(uvs[:, 1]).astype(np.int64), 0, depth.shape[0] - 1)
+            z = pc[seen, 2]
+            seen[np.flatnonzero(seen)] = depth[v, u] >= z - (depth_tolerance * z + 0.02)
+        uv[~seen] = np.nan
+        return uv
+
+
 @dataclass
 class OracleStats:
     """Counts over a run: ``replaced`` observations, ``dropped`` ones (see the module docstring),
@@ -123,7 +216,8 @@ class ObservationOracle:
         self.replaces = bool(replace)
         self.first_t: dict[int, int] = {}  # landmark id -> time (µs) of its first sighting
         self._errors: list[np.ndarray] = []  # per call: (K, 2) distance (px), track age (s)
-        self.sim = simulator if simulator is not None else simulator_of(sequence)
+        self.truth = SceneTruth(sequence, simulator=simulator)
+        self.sim = self.truth.sim
         self.cams = cams
         self.noise_px = float(noise_px)
         self.rng = np.random.default_rng(seed)
@@ -132,55 +226,28 @@ class ObservationOracle:
             raise DataError(Path(sequence), f"camera(s) {missing} are not in the simulator's rig {sorted(self.sim.rig.cameras)}")
         self.points: dict[int, np.ndarray | None] = {}  # landmark id -> true world point (m), None: no surface
         self.stats = OracleStats()
-        self._pose_cache: tuple[int, np.ndarray] | None = None
-        self._depth_cache: dict[tuple[int, int], np.ndarray] = {}
 
-    # -- the truth at one time -------------------------------------------------------------------
+    # -- the truth at one time (SceneTruth, with the runtime's camera models) --------------------
     def T_world_body(self, t_us: int) -> np.ndarray:
         """(4, 4) true body pose at ``t_us`` (µs), from the simulator's continuous trajectory."""
-        if self._pose_cache is None or self._pose_cache[0] != t_us:
-            R, p, _, _ = self.sim.trajectory.kinematics(t_us * 1e-6)
-            T = np.eye(4)
-            T[:3, :3], T[:3, 3] = R, p
-            self._pose_cache = (t_us, T)
-        return self._pose_cache[1]
+        return self.truth.T_world_body(t_us)
 
     def _depth(self, t_us: int, cam: int) -> np.ndarray:
         """(H, W) true z-depth (m, inf: no surface) of camera ``cam`` at its sensor resolution."""
-        key = (t_us, cam)
-        if key not in self._depth_cache:
-            model = self.cams.cams[cam]
-            T_wc = self.T_world_body(t_us) @ model.T_body_cam
-            self._depth_cache = {k: v for k, v in self._depth_cache.items() if k[0] == t_us}  # one time at a time
-            self._depth_cache[key] = self.sim.scene.render(self.sim.rig.cameras[model.name], T_wc, t_us * 1e-6)[1]
-        return self._depth_cache[key]
+        model = self.cams.cams[cam]
+        return self.truth.depth(t_us, model.name, model.T_body_cam)
 
     def back_project(self, t_us: int, cam: int, xy: np.ndarray) -> np.ndarray:
         """True world points (N, 3) under pixels ``xy`` (N, 2) of camera ``cam`` at ``t_us``; NaN rows where
         the ray hits no surface or leaves the sensor."""
         model = self.cams.cams[cam]
-        sensor = self.sim.rig.cameras[model.name]
-        xy = np.asarray(xy, np.float64).reshape(-1, 2)
-        rays = unproject(xy, np.ones(len(xy)), model.K)  # z = 1 in the camera frame
-        uv, _ = project(rays, np.asarray(sensor.K, np.float64))
-        u, v = np.round(uv[:, 0]).astype(np.int64), np.round(uv[:, 1]).astype(np.int64)
-        depth = self._depth(t_us, cam)
-        inside = (u >= 0) & (u < depth.shape[1]) & (v >= 0) & (v < depth.shape[0])
-        z = np.full(len(xy), np.nan)
-        z[inside] = depth[v[inside], u[inside]]
-        z[~np.isfinite(z)] = np.nan
-        T_wc = self.T_world_body(t_us) @ model.T_body_cam
-        return transform_points(T_wc, rays * z[:, None])
+        return self.truth.back_project(t_us, model.name, model.K, model.T_body_cam, xy)
 
     def projections(self, t_us: int, cam: int, points_world: np.ndarray) -> np.ndarray:
         """Exact pixels (N, 2) of world points in camera ``cam`` at ``t_us``; NaN behind the camera or
         outside the image."""
         model = self.cams.cams[cam]
-        T_cw = invert_T(self.T_world_body(t_us) @ model.T_body_cam)
-        uv, _ = project(transform_points(T_cw, np.asarray(points_world, np.float64).reshape(-1, 3)), model.K)
-        outside = ~((uv[:, 0] >= -0.5) & (uv[:, 0] <= model.width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= model.height - 0.5))
-        uv[outside] = np.nan
-        return uv
+        return self.truth.project(t_us, model.K, model.T_body_cam, (model.width, model.height), points_world)
 
     # -- the replacement ---------------------------------------------------------------------
     def replace(self, t_us: int, obs: Observations) -> tuple[Observations, np.ndarray]:

@@ -3,7 +3,7 @@
     aerovis-eval pose --data SEQ.h5|DIR (--detector orb|sift|gftt_brief | --model NAME_OR_PATH)
                       [--cam cam0] [--mcts ne|dt] [--rate-hz 20] [--max-pairs N] [--top-k N]
                       [--ransac-px PX] [--estimator ransac] [--max-dt-s 2] [--max-angle-deg 45]
-                      [--out FILE.json] [--quiet]
+                      [--oracle-noise-px PX ...] [--out FILE.json] [--quiet]
 
     aerovis-eval compare --data DIR|PRESET [--models ...] [--detectors ...] [--onnx-latency] [--out DIR]
 
@@ -14,6 +14,12 @@ folder, every ``*.h5`` in it (not recursive) is evaluated and the pairs of all s
 pooled into one AUC, as the published numbers pool a dataset's sequences. It prints ONE JSON
 line on stdout (AUC in percent), a short human summary and tqdm progress on stderr; ``--out``
 writes the same summary plus per-sequence results and per-pair errors.
+
+``--oracle-noise-px`` scores every pair a second time with perfect matches of the method's own
+keypoints (each first-frame keypoint's scene point, by the simulator's depth, and its exact
+projection in the second frame, plus noise): the AUC the protocol allows for those keypoints, with
+all of them in view matched and with as many as the method's RANSAC inliers. Its ``oracle`` rows
+go into the JSON line (:func:`~aerovis_train.eval.pose.oracle_pair_errors`).
 
 ``compare`` (:mod:`aerovis_train.eval.compare`) evaluates the shipped models and the classical
 baselines in one run on the same pairs: one table, one JSON line per method.
@@ -66,6 +72,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="essential-matrix estimator (default ransac, the protocol's; usac_accurate refines)")
     p.add_argument("--max-dt-s", type=float, default=2.0, help="pair window in seconds (protocol: 2)")
     p.add_argument("--max-angle-deg", type=float, default=45.0, help="largest rotation threshold in degrees (protocol: 45)")
+    p.add_argument("--oracle-noise-px", type=float, nargs="+", default=[], metavar="PX",
+                   help="also score every pair with perfect matches of the method's keypoints plus this much noise "
+                        "(px per axis; several values allowed): the protocol's ceiling for those keypoints. "
+                        "Simulated sequences only (their scene is rendered for the true depth)")
     p.add_argument("--out", help="write summary, per-sequence and per-pair results to this JSON file")
     p.add_argument("--quiet", action="store_true", help="no progress bar or human summary")
     from .compare import add_parser as add_compare
@@ -126,7 +136,8 @@ def _pose_one(args, seqs: list[Path], label: str, detector) -> tuple[dict, list[
     from .pose import evaluate_sequence
     common = dict(cam=args.cam, mcts_kind=args.mcts, rate_hz=None if args.rate_hz == 0 else args.rate_hz,
                   ransac_px=args.ransac_px, top_k=args.top_k, max_pairs=args.max_pairs, max_dt_s=args.max_dt_s,
-                  max_angle_deg=args.max_angle_deg, estimator=args.estimator, progress=not args.quiet)
+                  max_angle_deg=args.max_angle_deg, estimator=args.estimator, progress=not args.quiet,
+                  oracle_noise_px=args.oracle_noise_px)
     own_kind = getattr(detector, "mcts_kind", None)
     if args.mcts and own_kind and args.mcts != own_kind:
         if args.detector:  # a comparison: --mcts sets the classical detectors' surface, models keep their own
@@ -182,6 +193,11 @@ def main(argv: list[str] | None = None) -> int:
                           f"rotation AUC@5/10/20 {summary['auc5']:.1f} / {summary['auc10']:.1f} / {summary['auc20']:.1f} %, "
                           f"max(R,t) {summary['auc5_max']:.1f} / {summary['auc10_max']:.1f} / {summary['auc20_max']:.1f} %, "
                           f"{summary['matches']:.0f} matches/pair, {summary['latency_ms']:.2f} ms/frame", file=sys.stderr)
+                    for row in summary.get("oracle", []):
+                        print(f"  perfect matches of its keypoints + {row['noise_px']:g} px: rotation AUC@5/10/20 "
+                              f"{row['auc5']:.1f} / {row['auc10']:.1f} / {row['auc20']:.1f} % ({row['matches']:.0f} in view/pair); "
+                              f"as many as its own inliers: {row['auc5_at_inliers']:.1f} / {row['auc10_at_inliers']:.1f} / "
+                              f"{row['auc20_at_inliers']:.1f} %", file=sys.stderr)
                 print(json.dumps(summary))
                 sys.stdout.flush()
             return 0

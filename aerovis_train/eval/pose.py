@@ -367,12 +367,101 @@ def summarize(per_pair: list[dict], thresholds: tuple[float, ...] = AUC_THRESHOL
     out["pairs"] = len(per_pair)
     out["matches"] = float(np.mean([p["matches"] for p in per_pair])) if per_pair else float("nan")
     out["inlier_ratio"] = float(np.mean([p["inlier_ratio"] for p in per_pair])) if per_pair else float("nan")
+    if per_pair and "oracle" in per_pair[0]:
+        out["oracle"] = summarize_oracle(per_pair, thresholds)
     return out
+
+
+def summarize_oracle(per_pair: list[dict], thresholds: tuple[float, ...] = AUC_THRESHOLDS_DEG) -> list[dict]:
+    """The perfect-matches rows of pairs evaluated with ``oracle_noise_px`` (see :func:`oracle_pair_errors`):
+    one dict per noise level with ``noise_px``, ``auc{T}`` and ``auc{T}_max`` of all visible keypoints
+    matched perfectly, ``auc{T}_at_inliers`` of as many as the method's own RANSAC inliers, and the
+    mean ``matches`` (visible keypoints) per pair."""
+    rows = []
+    for k, first in enumerate(per_pair[0]["oracle"]):
+        entries = [p["oracle"][k] for p in per_pair]
+        row = {"noise_px": first["noise_px"]}
+        for key, suffix in (("rot_err_deg", ""), ("max_err_deg", "_max"), ("rot_err_deg_at_inliers", "_at_inliers")):
+            for thr, a in zip(thresholds, pose_auc([e[key] for e in entries], thresholds)):
+                row[f"auc{thr:g}{suffix}"] = a
+        row["matches"] = float(np.mean([e["matches"] for e in entries]))
+        rows.append(row)
+    return rows
 
 
 def default_ransac_px(width: int, height: int) -> float:
     """RANSAC threshold of the protocol: 1 px up to DAVIS346 size (ECD's 240x180), 3 px above (EDS's 640x480)."""
     return 1.0 if max(width, height) <= 346 else 3.0
+
+
+# --------------------------------------------------------------------------------------------
+# the protocol's ceiling: perfect matches of a detector's keypoints
+# --------------------------------------------------------------------------------------------
+def oracle_matches(truth, sensor: str, camera: CameraCalibration, xy0: np.ndarray, t0_us: int, t1_us: int
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Perfect matches of one frame's keypoints in a later frame, from the simulator's scene.
+
+    Each keypoint ``xy0`` of the frame at ``t0_us`` is back-projected with the rendered depth; where
+    that scene point is in view and not hidden by a nearer surface at ``t1_us``, its exact
+    projection there is its match.
+
+    Args:
+        truth: :class:`~aerovis_slam.slam.oracle.SceneTruth` of the sequence.
+        sensor: the camera's name in the simulator's rig.
+        camera: its calibration (pixels of ``xy0``: ideal pinhole, as the simulator renders).
+        xy0: (N, 2) keypoints of the first frame (px).
+        t0_us, t1_us: the frames' times on the camera clock (µs; the truth is read at
+            ``t + camera.imu_clock_offset_us``, the GT's clock).
+    Returns:
+        ``(a, b)``: (M, 2) keypoints of the first frame that are matched and (M, 2) their exact
+        pixels in the second, M <= N.
+    """
+    shift = camera.imu_clock_offset_us
+    K, T_bc, size = camera.K, camera.T_imu_cam, (camera.width, camera.height)
+    xy0 = np.asarray(xy0, np.float64).reshape(-1, 2)
+    pts = truth.back_project(int(t0_us) + shift, sensor, K, T_bc, xy0)
+    uv1 = truth.project(int(t1_us) + shift, K, T_bc, size, pts, occluded_by=sensor)
+    seen = np.isfinite(pts).all(axis=1) & np.isfinite(uv1).all(axis=1)
+    return xy0[seen], uv1[seen]
+
+
+def oracle_pair_errors(a: np.ndarray, b: np.ndarray, K: np.ndarray, T_1_0_gt: np.ndarray, ransac_px: float, noise_px,
+                       own_inliers: int, *, estimator: str = "ransac", rng: np.random.Generator) -> list[dict]:
+    """What the protocol scores for perfect matches (:func:`oracle_matches`) at each noise level.
+
+    Gaussian noise of ``noise_px`` per axis is added to both keypoints of every match, and the
+    matches go through :func:`relative_pose_error` exactly as a method's do. So detector and
+    descriptor are taken out: what remains is what the keypoints' positions, their number in view and
+    the protocol's unrefined RANSAC allow. A second draw keeps only as many of those matches as the
+    method's own RANSAC inliers (``own_inliers``): the ceiling for the number of correct matches the
+    method found.
+
+    Args:
+        a, b: (M, 2) matched pixels of the two frames.
+        K: (3, 3) intrinsics of both.
+        T_1_0_gt: (4, 4) the pair's GT transform, as the method is scored against.
+        ransac_px: as for the method.
+        noise_px: noise levels (px, per axis).
+        own_inliers: the method's inlier count on this pair.
+        estimator: as for the method.
+        rng: noise and subsampling draws.
+    Returns:
+        One dict per noise level: ``noise_px``, ``matches`` (M), ``rot_err_deg``, ``max_err_deg``,
+        and ``rot_err_deg_at_inliers``, ``max_err_deg_at_inliers``.
+    """
+    a, b = np.asarray(a, np.float64).reshape(-1, 2), np.asarray(b, np.float64).reshape(-1, 2)
+    every = np.repeat(np.arange(len(a))[:, None], 2, axis=1)
+    out = []
+    for sigma in noise_px:
+        na = a + rng.normal(0.0, float(sigma), a.shape)
+        nb = b + rng.normal(0.0, float(sigma), b.shape)
+        e_all = relative_pose_error(na, nb, every, K, K, T_1_0_gt, ransac_px, estimator=estimator)
+        few = every[rng.permutation(len(a))[: max(int(own_inliers), 0)]]
+        e_few = relative_pose_error(na, nb, few, K, K, T_1_0_gt, ransac_px, estimator=estimator)
+        out.append({"noise_px": float(sigma), "matches": int(len(a)), "rot_err_deg": e_all.rot_err_deg,
+                    "max_err_deg": e_all.max_err_deg, "rot_err_deg_at_inliers": e_few.rot_err_deg,
+                    "max_err_deg_at_inliers": e_few.max_err_deg})
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -541,6 +630,8 @@ def evaluate_sequence(
     estimator: str = "ransac",
     progress: bool = False,
     t_start_us: int | None = None,
+    oracle_noise_px=(),
+    oracle_seed: int = 0,
 ) -> dict:
     """Relative-pose evaluation of one detector on one canonical sequence.
 
@@ -566,6 +657,10 @@ def evaluate_sequence(
         estimator: essential-matrix estimator, see :data:`ESTIMATORS`.
         progress: tqdm bar on stderr.
         t_start_us: no frame before this time (µs); see :func:`plan_frames`.
+        oracle_noise_px: noise levels (px) at which each pair is scored again with perfect matches
+            of the detector's keypoints (:func:`oracle_pair_errors`: the protocol's ceiling for
+            these keypoints); needs a sequence written by ``aerovis-sim``. Empty: not done.
+        oracle_seed: seed of the oracle's noise (each pair draws from ``(seed, i, j)``).
     Returns:
         A JSON-ready dict: ``model``, ``sequence``, ``cam``, ``resolution`` [W, H], ``mcts``,
         ``mcts_params``, ``rate_hz``, ``ransac_px``, ``top_k``, ``frames`` (frames detected),
@@ -573,12 +668,25 @@ def evaluate_sequence(
         ``pairs``, ``matches``, ``inlier_ratio``), ``latency_ms`` (mean detector time per frame,
         the first call excluded as warm-up when there are several), ``mcts_ms`` (mean MCTS
         time), and ``per_pair``: one dict per pair (frame indices, times, GT angle and
-        translation, errors, matches, inliers).
+        translation, errors, matches, inliers; with ``oracle_noise_px`` an ``oracle`` list). With
+        ``oracle_noise_px`` the summary has ``oracle`` (:func:`summarize_oracle`).
     Raises:
-        DataError: no GT, no calibration, unknown camera, sizes that disagree, no events, or no pair.
+        DataError: no GT, no calibration, unknown camera, sizes that disagree, no events, or no pair;
+            with ``oracle_noise_px``, a negative level or a sequence not written by ``aerovis-sim``.
         ValueError: ``mcts_kind`` contradicts the detector's declared time surface.
     """
     path = Path(seq_path)
+    noise_levels = [float(x) for x in oracle_noise_px]
+    truth = None
+    if noise_levels:
+        # the simulator (and gtsam with the SLAM package) only when asked for
+        from aerovis_slam.slam.oracle import SceneTruth, _check_noise
+
+        for x in noise_levels:
+            _check_noise(x)
+        truth = SceneTruth(path)
+        if camera_key(cam) not in truth.sim.rig.cameras:
+            raise DataError(path, f"camera {camera_key(cam)!r} is not in the simulator's rig {sorted(truth.sim.rig.cameras)}")
     own_kind = getattr(detector, "mcts_kind", None)
     if mcts_kind is None:
         mcts_kind = own_kind or "ne"
@@ -649,6 +757,10 @@ def evaluate_sequence(
                          "gt_angle_deg": float(rotation_angle_deg(T_1_0[:3, :3])),
                          "gt_translation_m": float(np.linalg.norm(T_1_0[:3, 3])),
                          "keypoints0": len(kp0), "keypoints1": len(kp1), **err.to_dict()})
+        if truth is not None:
+            a, b = oracle_matches(truth, cam, camcal, xy0, int(times[i]), int(times[j]))
+            per_pair[-1]["oracle"] = oracle_pair_errors(a, b, K, T_1_0, ransac_px, noise_levels, err.inliers, estimator=estimator,
+                                                        rng=np.random.default_rng([int(oracle_seed), int(i), int(j)]))
     timed = det_s[1:] if len(det_s) > 1 else det_s
     result = {"model": name, "sequence": str(path), "cam": cam, "resolution": [W, H], "mcts": mcts_kind,
               "mcts_params": list(params), "rate_hz": rate_hz, "ransac_px": float(ransac_px), "estimator": estimator, "top_k": top_k,
