@@ -355,7 +355,10 @@ def summarize(per_pair: list[dict], thresholds: tuple[float, ...] = AUC_THRESHOL
 
     Returns:
         ``auc{T}`` (rotation) and ``auc{T}_max`` (max(rotation, translation)) in percent for each
-        threshold ``T``, ``pairs``, mean ``matches`` and mean ``inlier_ratio`` per pair.
+        threshold ``T``, ``pairs``, mean ``matches`` and mean ``inlier_ratio`` per pair. Pairs scored
+        with the simulator's truth (``oracle_noise_px``) add ``correct_matches`` (mean per pair, see
+        :func:`match_truth`), ``correct_error_px`` (median over pairs of their correct matches' median
+        distance to the truth) and ``oracle`` (:func:`summarize_oracle`).
     """
     rot = [p["rot_err_deg"] for p in per_pair]
     mx = [p["max_err_deg"] for p in per_pair]
@@ -367,6 +370,10 @@ def summarize(per_pair: list[dict], thresholds: tuple[float, ...] = AUC_THRESHOL
     out["pairs"] = len(per_pair)
     out["matches"] = float(np.mean([p["matches"] for p in per_pair])) if per_pair else float("nan")
     out["inlier_ratio"] = float(np.mean([p["inlier_ratio"] for p in per_pair])) if per_pair else float("nan")
+    if per_pair and "truth" in per_pair[0]:
+        errors = [p["truth"]["correct_error_px"] for p in per_pair if p["truth"]["correct_error_px"] is not None]
+        out["correct_matches"] = float(np.mean([p["truth"]["correct"] for p in per_pair]))
+        out["correct_error_px"] = float(np.median(errors)) if errors else None  # median over pairs of each pair's median
     if per_pair and "oracle" in per_pair[0]:
         out["oracle"] = summarize_oracle(per_pair, thresholds)
     return out
@@ -397,13 +404,11 @@ def default_ransac_px(width: int, height: int) -> float:
 # --------------------------------------------------------------------------------------------
 # the protocol's ceiling: perfect matches of a detector's keypoints
 # --------------------------------------------------------------------------------------------
-def oracle_matches(truth, sensor: str, camera: CameraCalibration, xy0: np.ndarray, t0_us: int, t1_us: int
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Perfect matches of one frame's keypoints in a later frame, from the simulator's scene.
+def true_projections(truth, sensor: str, camera: CameraCalibration, xy0: np.ndarray, t0_us: int, t1_us: int) -> np.ndarray:
+    """Where one frame's keypoints truly appear in a later frame, from the simulator's scene.
 
-    Each keypoint ``xy0`` of the frame at ``t0_us`` is back-projected with the rendered depth; where
-    that scene point is in view and not hidden by a nearer surface at ``t1_us``, its exact
-    projection there is its match.
+    Each keypoint ``xy0`` of the frame at ``t0_us`` is back-projected with the rendered depth, and
+    that scene point is projected into the camera at ``t1_us``.
 
     Args:
         truth: :class:`~aerovis_slam.slam.oracle.SceneTruth` of the sequence.
@@ -413,16 +418,52 @@ def oracle_matches(truth, sensor: str, camera: CameraCalibration, xy0: np.ndarra
         t0_us, t1_us: the frames' times on the camera clock (µs; the truth is read at
             ``t + camera.imu_clock_offset_us``, the GT's clock).
     Returns:
-        ``(a, b)``: (M, 2) keypoints of the first frame that are matched and (M, 2) their exact
-        pixels in the second, M <= N.
+        (N, 2) pixels in the second frame; NaN rows where the keypoint hits no surface, or its point
+        is behind the camera, outside the image or hidden by a nearer surface at ``t1_us``.
     """
     shift = camera.imu_clock_offset_us
     K, T_bc, size = camera.K, camera.T_imu_cam, (camera.width, camera.height)
+    pts = truth.back_project(int(t0_us) + shift, sensor, K, T_bc, np.asarray(xy0, np.float64).reshape(-1, 2))
+    return truth.project(int(t1_us) + shift, K, T_bc, size, pts, occluded_by=sensor)
+
+
+def oracle_matches(truth, sensor: str, camera: CameraCalibration, xy0: np.ndarray, t0_us: int, t1_us: int
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Perfect matches of one frame's keypoints in a later frame: each keypoint whose scene point is
+    in view and not hidden at ``t1_us`` with its exact projection there (arguments as
+    :func:`true_projections`).
+
+    Returns:
+        ``(a, b)``: (M, 2) keypoints of the first frame that are matched and (M, 2) their exact
+        pixels in the second, M <= N.
+    """
     xy0 = np.asarray(xy0, np.float64).reshape(-1, 2)
-    pts = truth.back_project(int(t0_us) + shift, sensor, K, T_bc, xy0)
-    uv1 = truth.project(int(t1_us) + shift, K, T_bc, size, pts, occluded_by=sensor)
-    seen = np.isfinite(pts).all(axis=1) & np.isfinite(uv1).all(axis=1)
+    uv1 = true_projections(truth, sensor, camera, xy0, t0_us, t1_us)
+    seen = np.isfinite(uv1).all(axis=1)
     return xy0[seen], uv1[seen]
+
+
+def match_truth(xy1: np.ndarray, matches: np.ndarray, uv_true: np.ndarray, ransac_px: float) -> dict:
+    """How a method's own matches compare with the truth: a match is correct when its second keypoint
+    lies within ``ransac_px`` of where its first keypoint's scene point truly appears.
+
+    Args:
+        xy1: (N1, 2) keypoints of the second frame.
+        matches: (M, 2) the method's index pairs.
+        uv_true: (N0, 2) :func:`true_projections` of the first frame's keypoints (NaN: not in view).
+        ransac_px: the protocol's threshold for the pair.
+    Returns:
+        ``correct`` (count), ``in_view`` (matches whose first keypoint is in view in the second
+        frame) and ``correct_error_px`` (median distance of the correct ones to the truth; None
+        without any).
+    """
+    matches = np.asarray(matches, np.int64).reshape(-1, 2)
+    d = np.linalg.norm(np.asarray(xy1, np.float64)[matches[:, 1]] - uv_true[matches[:, 0]], axis=1)
+    in_view = np.isfinite(d)
+    ok = in_view.copy()
+    ok[in_view] = d[in_view] <= ransac_px
+    return {"correct": int(ok.sum()), "in_view": int(in_view.sum()),
+            "correct_error_px": float(np.median(d[ok])) if ok.any() else None}
 
 
 def oracle_pair_errors(a: np.ndarray, b: np.ndarray, K: np.ndarray, T_1_0_gt: np.ndarray, ransac_px: float, noise_px,
@@ -668,8 +709,8 @@ def evaluate_sequence(
         ``pairs``, ``matches``, ``inlier_ratio``), ``latency_ms`` (mean detector time per frame,
         the first call excluded as warm-up when there are several), ``mcts_ms`` (mean MCTS
         time), and ``per_pair``: one dict per pair (frame indices, times, GT angle and
-        translation, errors, matches, inliers; with ``oracle_noise_px`` an ``oracle`` list). With
-        ``oracle_noise_px`` the summary has ``oracle`` (:func:`summarize_oracle`).
+        translation, errors, matches, inliers; with ``oracle_noise_px`` ``truth`` and ``oracle``). With
+        ``oracle_noise_px`` the summary has ``correct_matches``, ``correct_error_px`` and ``oracle`` (:func:`summarize`).
     Raises:
         DataError: no GT, no calibration, unknown camera, sizes that disagree, no events, or no pair;
             with ``oracle_noise_px``, a negative level or a sequence not written by ``aerovis-sim``.
@@ -758,7 +799,10 @@ def evaluate_sequence(
                          "gt_translation_m": float(np.linalg.norm(T_1_0[:3, 3])),
                          "keypoints0": len(kp0), "keypoints1": len(kp1), **err.to_dict()})
         if truth is not None:
-            a, b = oracle_matches(truth, cam, camcal, xy0, int(times[i]), int(times[j]))
+            uv_true = true_projections(truth, cam, camcal, xy0, int(times[i]), int(times[j]))
+            per_pair[-1]["truth"] = match_truth(xy1, m, uv_true, ransac_px)
+            seen = np.isfinite(uv_true).all(axis=1)
+            a, b = xy0[seen], uv_true[seen]
             per_pair[-1]["oracle"] = oracle_pair_errors(a, b, K, T_1_0, ransac_px, noise_levels, err.inliers, estimator=estimator,
                                                         rng=np.random.default_rng([int(oracle_seed), int(i), int(j)]))
     timed = det_s[1:] if len(det_s) > 1 else det_s
