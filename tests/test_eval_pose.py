@@ -732,7 +732,7 @@ def test_cli_pose_oracle_rows_leave_the_method_unchanged(dot_sequence, tmp_path,
     line = json.loads(capsys.readouterr().out.strip())
     assert {k: line[k] for k in ("auc5", "auc10", "auc20", "pairs", "matches")} == {k: plain[k] for k in ("auc5", "auc10", "auc20", "pairs", "matches")}
     assert [r["noise_px"] for r in line["oracle"]] == [0.0, 1.0]
-    assert 0 < line["correct_matches"] <= line["matches"] and 0.0 <= line["correct_error_px"] <= line["ransac_px"] == 1.0
+    assert 0 < line["correct_matches_1px"] <= line["correct_matches_3px"] <= line["matches"] and 0.0 <= line["correct_error_px"] <= 3.0
     for r in line["oracle"]:
         assert r["matches"] > 0
         assert all(0.0 <= r[f"auc{t}{s}"] <= 100.0 for t in (5, 10, 20) for s in ("", "_max", "_at_inliers"))
@@ -743,12 +743,12 @@ def test_cli_pose_oracle_rows_leave_the_method_unchanged(dot_sequence, tmp_path,
     assert ">= 0" in capsys.readouterr().err
 
 
-def test_match_truth_counts_matches_within_the_threshold_of_the_truth():
-    """Four matches: one 0.5 px from the truth, one 2.5 px (correct at 3 px, not at 1 px), one 5 px,
+def test_match_truth_counts_matches_within_each_radius_of_the_truth():
+    """Four matches: one 0.5 px from the truth, one 2.5 px (correct within 3 px, not 1 px), one 5 px,
     one whose first keypoint is not in view (NaN truth)."""
     uv_true = np.array([[10.0, 10.0], [20.0, 20.0], [30.0, 30.0], [np.nan, np.nan]])
     xy1 = np.array([[30.0, 35.0], [10.5, 10.0], [20.0, 22.5], [0.0, 0.0]])
     m = np.array([[0, 1], [1, 2], [2, 0], [3, 3]])
-    assert match_truth(xy1, m, uv_true, 3.0) == {"correct": 2, "in_view": 3, "correct_error_px": pytest.approx(1.5)}
-    assert match_truth(xy1, m, uv_true, 1.0) == {"correct": 1, "in_view": 3, "correct_error_px": pytest.approx(0.5)}
-    assert match_truth(xy1, m[3:], uv_true, 3.0) == {"correct": 0, "in_view": 0, "correct_error_px": None}
+    assert match_truth(xy1, m, uv_true) == {"in_view": 3, "correct": {"1": 1, "3": 2}, "error_px": pytest.approx(1.5)}
+    assert match_truth(xy1, m, uv_true, (1.0,)) == {"in_view": 3, "correct": {"1": 1}, "error_px": pytest.approx(0.5)}
+    assert match_truth(xy1, m[3:], uv_true) == {"in_view": 0, "correct": {"1": 0, "3": 0}, "error_px": None}

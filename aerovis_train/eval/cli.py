@@ -193,9 +193,10 @@ def main(argv: list[str] | None = None) -> int:
                           f"rotation AUC@5/10/20 {summary['auc5']:.1f} / {summary['auc10']:.1f} / {summary['auc20']:.1f} %, "
                           f"max(R,t) {summary['auc5_max']:.1f} / {summary['auc10_max']:.1f} / {summary['auc20_max']:.1f} %, "
                           f"{summary['matches']:.0f} matches/pair, {summary['latency_ms']:.2f} ms/frame", file=sys.stderr)
-                    if "correct_matches" in summary:
-                        print(f"  correct matches (within the RANSAC threshold of the truth): {summary['correct_matches']:.1f}/pair, "
-                              f"median error {summary['correct_error_px'] or float('nan'):.2f} px", file=sys.stderr)
+                    if "correct_matches_3px" in summary:
+                        print(f"  its matches within 1 / 3 px of the truth: {summary['correct_matches_1px']:.1f} / "
+                              f"{summary['correct_matches_3px']:.1f} per pair (median error of those within 3 px "
+                              f"{summary['correct_error_px'] or float('nan'):.2f} px)", file=sys.stderr)
                     for row in summary.get("oracle", []):
                         print(f"  perfect matches of its keypoints + {row['noise_px']:g} px: rotation AUC@5/10/20 "
                               f"{row['auc5']:.1f} / {row['auc10']:.1f} / {row['auc20']:.1f} % ({row['matches']:.0f} in view/pair); "

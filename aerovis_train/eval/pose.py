@@ -356,9 +356,10 @@ def summarize(per_pair: list[dict], thresholds: tuple[float, ...] = AUC_THRESHOL
     Returns:
         ``auc{T}`` (rotation) and ``auc{T}_max`` (max(rotation, translation)) in percent for each
         threshold ``T``, ``pairs``, mean ``matches`` and mean ``inlier_ratio`` per pair. Pairs scored
-        with the simulator's truth (``oracle_noise_px``) add ``correct_matches`` (mean per pair, see
-        :func:`match_truth`), ``correct_error_px`` (median over pairs of their correct matches' median
-        distance to the truth) and ``oracle`` (:func:`summarize_oracle`).
+        with the simulator's truth (``oracle_noise_px``) add ``correct_matches_{r}px`` (mean per pair for
+        each radius of :func:`match_truth`), ``correct_error_px`` (median over pairs of the median
+        distance to the truth of their matches correct within the largest radius) and ``oracle``
+        (:func:`summarize_oracle`).
     """
     rot = [p["rot_err_deg"] for p in per_pair]
     mx = [p["max_err_deg"] for p in per_pair]
@@ -371,8 +372,9 @@ def summarize(per_pair: list[dict], thresholds: tuple[float, ...] = AUC_THRESHOL
     out["matches"] = float(np.mean([p["matches"] for p in per_pair])) if per_pair else float("nan")
     out["inlier_ratio"] = float(np.mean([p["inlier_ratio"] for p in per_pair])) if per_pair else float("nan")
     if per_pair and "truth" in per_pair[0]:
-        errors = [p["truth"]["correct_error_px"] for p in per_pair if p["truth"]["correct_error_px"] is not None]
-        out["correct_matches"] = float(np.mean([p["truth"]["correct"] for p in per_pair]))
+        for r in per_pair[0]["truth"]["correct"]:
+            out[f"correct_matches_{r}px"] = float(np.mean([p["truth"]["correct"][r] for p in per_pair]))
+        errors = [p["truth"]["error_px"] for p in per_pair if p["truth"]["error_px"] is not None]
         out["correct_error_px"] = float(np.median(errors)) if errors else None  # median over pairs of each pair's median
     if per_pair and "oracle" in per_pair[0]:
         out["oracle"] = summarize_oracle(per_pair, thresholds)
@@ -443,27 +445,32 @@ def oracle_matches(truth, sensor: str, camera: CameraCalibration, xy0: np.ndarra
     return xy0[seen], uv1[seen]
 
 
-def match_truth(xy1: np.ndarray, matches: np.ndarray, uv_true: np.ndarray, ransac_px: float) -> dict:
-    """How a method's own matches compare with the truth: a match is correct when its second keypoint
-    lies within ``ransac_px`` of where its first keypoint's scene point truly appears.
+#: distances (px) at which a method's own match counts as correct (:func:`match_truth`): 1 px, and 3 px,
+#: SuperPoint's correctness distance (event keypoints trail the motion by about a pixel, "Evaluation" in the README)
+CORRECT_RADII_PX: tuple[float, ...] = (1.0, 3.0)
+
+
+def match_truth(xy1: np.ndarray, matches: np.ndarray, uv_true: np.ndarray, radii_px: tuple[float, ...] = CORRECT_RADII_PX) -> dict:
+    """How a method's own matches compare with the truth: a match is correct within ``r`` when its
+    second keypoint lies within ``r`` px of where its first keypoint's scene point truly appears.
 
     Args:
         xy1: (N1, 2) keypoints of the second frame.
         matches: (M, 2) the method's index pairs.
         uv_true: (N0, 2) :func:`true_projections` of the first frame's keypoints (NaN: not in view).
-        ransac_px: the protocol's threshold for the pair.
+        radii_px: the distances (px).
     Returns:
-        ``correct`` (count), ``in_view`` (matches whose first keypoint is in view in the second
-        frame) and ``correct_error_px`` (median distance of the correct ones to the truth; None
-        without any).
+        ``in_view`` (matches whose first keypoint is in view in the second frame), ``correct`` (count
+        per radius, keyed by the radius as text, e.g. ``"3"``) and ``error_px`` (median distance to
+        the truth of the matches correct within the largest radius; None without any).
     """
     matches = np.asarray(matches, np.int64).reshape(-1, 2)
     d = np.linalg.norm(np.asarray(xy1, np.float64)[matches[:, 1]] - uv_true[matches[:, 0]], axis=1)
     in_view = np.isfinite(d)
-    ok = in_view.copy()
-    ok[in_view] = d[in_view] <= ransac_px
-    return {"correct": int(ok.sum()), "in_view": int(in_view.sum()),
-            "correct_error_px": float(np.median(d[ok])) if ok.any() else None}
+    d = np.where(in_view, d, np.inf)
+    within = d <= max(radii_px)
+    return {"in_view": int(in_view.sum()), "correct": {f"{r:g}": int(np.sum(d <= r)) for r in radii_px},
+            "error_px": float(np.median(d[within])) if within.any() else None}
 
 
 def oracle_pair_errors(a: np.ndarray, b: np.ndarray, K: np.ndarray, T_1_0_gt: np.ndarray, ransac_px: float, noise_px,
@@ -710,7 +717,7 @@ def evaluate_sequence(
         the first call excluded as warm-up when there are several), ``mcts_ms`` (mean MCTS
         time), and ``per_pair``: one dict per pair (frame indices, times, GT angle and
         translation, errors, matches, inliers; with ``oracle_noise_px`` ``truth`` and ``oracle``). With
-        ``oracle_noise_px`` the summary has ``correct_matches``, ``correct_error_px`` and ``oracle`` (:func:`summarize`).
+        ``oracle_noise_px`` the summary has ``correct_matches_1px``, ``correct_matches_3px``, ``correct_error_px`` and ``oracle`` (:func:`summarize`).
     Raises:
         DataError: no GT, no calibration, unknown camera, sizes that disagree, no events, or no pair;
             with ``oracle_noise_px``, a negative level or a sequence not written by ``aerovis-sim``.
@@ -800,7 +807,7 @@ def evaluate_sequence(
                          "keypoints0": len(kp0), "keypoints1": len(kp1), **err.to_dict()})
         if truth is not None:
             uv_true = true_projections(truth, cam, camcal, xy0, int(times[i]), int(times[j]))
-            per_pair[-1]["truth"] = match_truth(xy1, m, uv_true, ransac_px)
+            per_pair[-1]["truth"] = match_truth(xy1, m, uv_true)
             seen = np.isfinite(uv_true).all(axis=1)
             a, b = xy0[seen], uv_true[seen]
             per_pair[-1]["oracle"] = oracle_pair_errors(a, b, K, T_1_0, ransac_px, noise_levels, err.inliers, estimator=estimator,
