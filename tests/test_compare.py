@@ -140,3 +140,26 @@ def test_onnx_latency_times_every_model_at_one_size(tiny, tmp_path):
     # alone, the convolutional model keeps the full 424x240
     alone = onnx_figures(methods[:1], calibration=seq, repeats=2, warmup=1)
     assert alone["conv"]["onnx"]["resolution"] == [424, 240]
+
+
+def test_compare_oracle_rows_and_table(tmp_path, capsys):
+    """``compare --oracle-noise-px``: each row carries the ceiling and correct-match figures that a
+    plain evaluation with the oracle gives at the same start, and the table gains a second part.
+    (A 1 s spin of the drone rig at half size: ORB finds nothing at the tiny preset's 64x48.)"""
+    from aerovis_slam.sim import SequenceSpec, write_sequence
+
+    seq = tmp_path / "spin.h5"
+    write_sequence(SequenceSpec("spin", rig="drone424", rig_scale=0.5, trajectory="spin", trajectory_seed=4, scene_seed=4,
+                                duration_s=1.0, frame_rate_hz=20, gt_rate_hz=200), seq)
+    out = tmp_path / "cmp"
+    assert cli.main(["compare", "--data", str(seq), "--models", "--detectors", "orb", "--max-dt-s", "1", "--max-angle-deg", "10",
+                     "--oracle-noise-px", "0", "1", "--quiet", "--out", str(out)]) == 0
+    row = json.loads(capsys.readouterr().out.strip())
+    doc = json.loads((out / "compare.json").read_text())
+    t_start = doc["t_start_us"][str(seq)]
+    ref = evaluate_sequence(seq, "orb", mcts_kind="ne", rate_hz=20.0, max_dt_s=1.0, max_angle_deg=10.0, t_start_us=t_start,
+                            oracle_noise_px=(0.0, 1.0))
+    assert row["oracle"] == ref["oracle"] and row["correct_matches_3px"] == ref["correct_matches_3px"]
+    assert row["correct_error_px"] == ref["correct_error_px"] and [o["noise_px"] for o in row["oracle"]] == [0.0, 1.0]
+    md = (out / "compare.md").read_text()
+    assert "The protocol's ceiling" in md and "| orb |" in md.split("The protocol's ceiling")[1]

@@ -2,7 +2,7 @@
 
     aerovis-eval compare --data DIR|SEQ.h5|PRESET [--models superlite superevent_plus superevent|PATH|LABEL=PATH ...]
                          [--detectors orb sift gftt_brief] [--classical-mcts ne|dt] [--onnx-latency]
-                         [--rate-hz 20] [--max-pairs N] [--top-k N] [--out DIR] [--quiet]
+                         [--rate-hz 20] [--max-pairs N] [--top-k N] [--oracle-noise-px PX ...] [--out DIR] [--quiet]
 
 Every method is evaluated by the SuperEvent relative-pose protocol (:mod:`.pose`) on the same
 frames and therefore the same pairs: a learned model on the time surface it was trained on
@@ -51,6 +51,8 @@ from .pose import evaluate_sequence, plan_frames
 DEFAULT_MODELS = ("superlite", "superevent_plus", "superevent")
 DEFAULT_DETECTORS = ("orb", "sift", "gftt_brief")
 JSON_KEYS = ("method", "auc5", "auc10", "auc20", "matches", "inlier_ratio", "latency_ms")
+#: what ``--oracle-noise-px`` adds to a row (summaries of :func:`~aerovis_train.eval.pose.summarize`)
+TRUTH_KEYS = ("correct_matches_1px", "correct_matches_3px", "correct_error_px", "oracle")
 
 
 @dataclass
@@ -134,11 +136,13 @@ def common_starts(seqs: list[Path], methods: list[Method], *, cam: str, rate_hz:
 def run_compare(data: str, methods: list[Method], *, cam: str = "cam0", rate_hz: float | None = 20.0, max_pairs: int | None = None,
                 top_k: int | None = None, ransac_px: float | None = None, estimator: str = "ransac", max_dt_s: float = 2.0,
                 max_angle_deg: float = 45.0, onnx_latency: bool = False, bundle_dir: str | Path | None = None,
-                progress: bool = True) -> dict:
+                progress: bool = True, oracle_noise_px=()) -> dict:
     """Evaluate ``methods`` on the same pairs of ``data`` (sequence, folder or preset name).
 
     With ``onnx_latency`` every learned method also gets ONNX Runtime figures (:func:`onnx_figures`);
-    its bundles are kept in ``bundle_dir`` when given.
+    its bundles are kept in ``bundle_dir`` when given. With ``oracle_noise_px`` (simulated data) each
+    row also carries the protocol's ceiling for the method's keypoints and its correct matches
+    (:func:`~aerovis_train.eval.pose.evaluate_sequence`).
 
     Returns:
         ``{"rows": [one summary per method, JSON_KEYS first], "sequences": [...], "skipped": [...],
@@ -156,7 +160,8 @@ def run_compare(data: str, methods: list[Method], *, cam: str = "cam0", rate_hz:
         t0 = time.perf_counter()
         results = [evaluate_sequence(p, m.detector, cam=cam, mcts_kind=m.mcts_kind, mcts_params=m.mcts_params, rate_hz=rate_hz,
                                      ransac_px=ransac_px, top_k=top_k, max_pairs=max_pairs, max_dt_s=max_dt_s,
-                                     max_angle_deg=max_angle_deg, estimator=estimator, progress=progress, t_start_us=t_start)
+                                     max_angle_deg=max_angle_deg, estimator=estimator, progress=progress, t_start_us=t_start,
+                                     oracle_noise_px=oracle_noise_px)
                    for p, t_start in starts.items()]
         keys = [(r["sequence"], pp["t0_us"], pp["t1_us"]) for r in results for pp in r["per_pair"]]
         pair_keys[m.label] = keys
@@ -165,7 +170,8 @@ def run_compare(data: str, methods: list[Method], *, cam: str = "cam0", rate_hz:
                "pairs": summary["pairs"], "auc5_max": summary["auc5_max"], "auc10_max": summary["auc10_max"],
                "auc20_max": summary["auc20_max"], "sequences": summary["sequences"], "frames": summary["frames"],
                "mcts_ms": summary["mcts_ms"], "resolution": summary["resolution"], "top_k": summary["top_k"],
-               "ransac_px": summary["ransac_px"], "source": m.source, **m.extra, "eval_s": round(time.perf_counter() - t0, 1)}
+               "ransac_px": summary["ransac_px"], "source": m.source, **m.extra, "eval_s": round(time.perf_counter() - t0, 1),
+               **{k: summary[k] for k in TRUTH_KEYS if k in summary}}
         if m.kind == "learned" and hasattr(m.detector, "model"):
             from aerovis_train.models import count_parameters
 
@@ -288,6 +294,23 @@ def markdown_table(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def oracle_table(rows: list[dict]) -> str:
+    """The ``--oracle-noise-px`` figures as a Markdown table ("" when the rows have none): each method's
+    correct matches and the AUC@10 of perfect matches of its keypoints at each noise level."""
+    if not rows or "oracle" not in rows[0]:
+        return ""
+    levels = " / ".join(f"{o['noise_px']:g}" for o in rows[0]["oracle"])
+    lines = [f"| method | AUC@10 | matches/pair | correct within 1 / 3 px | their error (px) | keypoints in view | "
+             f"perfect matches, all in view, AUC@10 at {levels} px | as many as own inliers, same levels |",
+             "|---|---:|---:|---|---:|---:|---|---|"]
+    for r in rows:
+        o = r["oracle"]
+        lines.append(f"| {r['method']} | {_f(r['auc10'])} | {_f(r['matches'])} | {_f(r['correct_matches_1px'])} / "
+                     f"{_f(r['correct_matches_3px'])} | {_f(r['correct_error_px'], 2)} | {_f(o[0]['matches'], 0)} | "
+                     + " / ".join(_f(x["auc10"]) for x in o) + " | " + " / ".join(_f(x["auc10_at_inliers"]) for x in o) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def csv_text(rows: list[dict]) -> str:
     fields = [*JSON_KEYS, "kind", "mcts", "pairs", "auc5_max", "auc10_max", "auc20_max", "parameters", "onnx_fp32_ms", "source"]
     buf = io.StringIO()
@@ -323,6 +346,9 @@ def add_parser(sub) -> None:
     p.add_argument("--onnx-latency", action="store_true",
                    help="also export each learned model and time ONNX Runtime FP32 on a stereo batch at 424x240 "
                         "(400x240 when a MaxViT model is compared: one size for all)")
+    p.add_argument("--oracle-noise-px", type=float, nargs="+", default=[], metavar="PX",
+                   help="also score every pair with perfect matches of each method's keypoints plus this much noise, and "
+                        "count each method's correct matches (simulated data; see aerovis-eval pose --help)")
     p.add_argument("--out", help="folder for compare.json, compare.md, compare.csv (and bundles/ with --onnx-latency)")
     p.add_argument("--quiet", action="store_true", help="no progress bars or table on stderr")
 
@@ -344,10 +370,14 @@ def main_compare(args, argv: list[str] | None) -> int:
     out = run_compare(args.data, methods, cam=args.cam, rate_hz=None if args.rate_hz == 0 else args.rate_hz, max_pairs=args.max_pairs,
                       top_k=args.top_k, ransac_px=args.ransac_px, estimator=args.estimator, max_dt_s=args.max_dt_s,
                       max_angle_deg=args.max_angle_deg, onnx_latency=args.onnx_latency,
-                      bundle_dir=Path(args.out) / "bundles" if args.out else None, progress=not args.quiet)
+                      bundle_dir=Path(args.out) / "bundles" if args.out else None, progress=not args.quiet,
+                      oracle_noise_px=args.oracle_noise_px)
     rows = out["rows"]
     host["loadavg_end"] = os.getloadavg()
     table = markdown_table(rows)
+    ceiling = oracle_table(rows)
+    if ceiling:
+        table += "\nThe protocol's ceiling for each method's keypoints (aerovis-eval pose --help, --oracle-noise-px):\n\n" + ceiling
     if not args.quiet:
         print(f"\n{out['pairs']} pairs on {len(out['sequences'])} sequence(s) of {args.data}, the same for every method"
               + (f"; missing: {', '.join(missing)}" if missing else "") + "\n" + table, file=sys.stderr)
