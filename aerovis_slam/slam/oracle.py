@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
-from ..geometry import invert_T, project, transform_points, unproject
+from ..geometry import invert_T, project, sample_depth_nearest, transform_points, unproject
 from .backend import Observations
 from .cameras import StereoCameras
 
@@ -141,12 +141,8 @@ class SceneTruth:
         xy = np.asarray(xy, np.float64).reshape(-1, 2)
         rays = unproject(xy, np.ones(len(xy)), np.asarray(K, np.float64))  # z = 1 in the camera frame
         uv, _ = project(rays, np.asarray(self.sensor(sensor).K, np.float64))
-        u, v = np.round(uv[:, 0]).astype(np.int64), np.round(uv[:, 1]).astype(np.int64)
-        depth = self.depth(t_us, sensor, T_body_cam)
-        inside = (u >= 0) & (u < depth.shape[1]) & (v >= 0) & (v < depth.shape[0])
-        z = np.full(len(xy), np.nan)
-        z[inside] = depth[v[inside], u[inside]]
-        z[~np.isfinite(z)] = np.nan
+        z = sample_depth_nearest(self.depth(t_us, sensor, T_body_cam), uv)
+        z[~np.isfinite(z)] = np.nan  # inf: the ray hits no surface
         T_wc = self.T_world_body(t_us) @ T_body_cam
         return transform_points(T_wc, rays * z[:, None])
 

@@ -429,22 +429,6 @@ def true_projections(truth, sensor: str, camera: CameraCalibration, xy0: np.ndar
     return truth.project(int(t1_us) + shift, K, T_bc, size, pts, occluded_by=sensor)
 
 
-def oracle_matches(truth, sensor: str, camera: CameraCalibration, xy0: np.ndarray, t0_us: int, t1_us: int
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Perfect matches of one frame's keypoints in a later frame: each keypoint whose scene point is
-    in view and not hidden at ``t1_us`` with its exact projection there (arguments as
-    :func:`true_projections`).
-
-    Returns:
-        ``(a, b)``: (M, 2) keypoints of the first frame that are matched and (M, 2) their exact
-        pixels in the second, M <= N.
-    """
-    xy0 = np.asarray(xy0, np.float64).reshape(-1, 2)
-    uv1 = true_projections(truth, sensor, camera, xy0, t0_us, t1_us)
-    seen = np.isfinite(uv1).all(axis=1)
-    return xy0[seen], uv1[seen]
-
-
 #: distances (px) at which a method's own match counts as correct (:func:`match_truth`): 1 px, and 3 px,
 #: SuperPoint's correctness distance (event keypoints trail the motion by about a pixel, "Evaluation" in the README)
 CORRECT_RADII_PX: tuple[float, ...] = (1.0, 3.0)
@@ -475,7 +459,8 @@ def match_truth(xy1: np.ndarray, matches: np.ndarray, uv_true: np.ndarray, radii
 
 def oracle_pair_errors(a: np.ndarray, b: np.ndarray, K: np.ndarray, T_1_0_gt: np.ndarray, ransac_px: float, noise_px,
                        own_inliers: int, *, estimator: str = "ransac", rng: np.random.Generator) -> list[dict]:
-    """What the protocol scores for perfect matches (:func:`oracle_matches`) at each noise level.
+    """What the protocol scores for perfect matches at each noise level: ``a`` and their true
+    projections ``b`` (:func:`true_projections`, the rows in view).
 
     Gaussian noise of ``noise_px`` per axis is added to both keypoints of every match, and the
     matches go through :func:`relative_pose_error` exactly as a method's do. So detector and
