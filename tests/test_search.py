@@ -332,3 +332,71 @@ def test_results_seed_ablation(tmp_path):
     with pytest.raises(DataError, match="--ablation-methods"):
         write_results(tmp_path / "r3.md", ablation=tmp_path / "seeds", ablation_methods="(ne")
     assert not (tmp_path / "r3.md").exists()
+
+
+def test_results_other_surface_ceiling_and_kept_sections(tmp_path, capsys):
+    """The classical detectors on another time surface, the protocol's ceiling (perfect matches of each
+    method's keypoints) and sections carried over from the page as it stood, on hand-made comparisons."""
+    def row(method, kind, mcts, auc10, **extra):
+        return {"method": method, "kind": kind, "mcts": mcts, "auc5": auc10 / 2, "auc10": auc10, "auc20": auc10 * 1.4,
+                "matches": 40.0, "inlier_ratio": 0.5, "latency_ms": 5.0, "source": f"/w/{method}.pt", **extra}
+
+    same = {"pairs": 6, "sequences": ["/c/bench-seed0/a.h5"], "t_start_us": {"/c/bench-seed0/a.h5": 100}}
+    main = {"command": "aerovis-eval compare --data bench --out M", **same,
+            "rows": [row("superlite", "learned", "ne", 34.0), row("superevent", "learned", "dt", 24.0),
+                     row("orb", "classical", "ne", 30.0), row("sift", "classical", "ne", 20.0)]}
+    dt = {"command": "aerovis-eval compare --data bench --classical-mcts dt --out D", **same,
+          "rows": [row("superevent", "learned", "dt", 24.0), row("orb", "classical", "dt", 33.0), row("sift", "classical", "dt", 22.0)]}
+
+    def oracle(c0, c1, i1):  # levels 0 / 0.5 / 1 / 2 px; the statements quote 1 px, the level nearest CEILING_REFERENCE_PX
+        return [{"noise_px": n, "auc10": c, "auc10_at_inliers": a, "matches": 100.0}
+                for n, c, a in ((0.0, c0, c0), (0.5, c1 + 5, i1 + 5), (1.0, c1, i1), (2.0, c1 - 5, i1 - 5))]
+
+    truth = {"superlite": (90.0, 75.0, 60.0, 12.0, 1.6), "orb": (88.0, 70.0, 50.0, 8.0, 1.3)}
+    ceil = {"command": "aerovis-eval compare --data bench --oracle-noise-px 0 0.5 1 2 --out C", **same,
+            "rows": [row(m, "learned" if m == "superlite" else "classical", "ne", {"superlite": 34.0, "orb": 30.0}[m],
+                         oracle=oracle(c0, c1, i1), correct_matches_1px=3.0, correct_matches_3px=n3, correct_error_px=err)
+                     for m, (c0, c1, i1, n3, err) in truth.items()],
+            "results": {m: [{"sequence": "/c/bench-seed0/a.h5", "pairs": 6, "auc10": 34.0, "matches": 40.0, "correct_matches_3px": n3,
+                             "correct_error_px": err, "oracle": oracle(c0, c1, i1),
+                             "per_pair": [{"inliers": k} for k in (10, 20, 10, 20, 10, 20)]}]
+                        for m, (c0, c1, i1, n3, err) in truth.items()}}
+    for name, c in (("main", main), ("dt", dt), ("ceil", ceil)):
+        write_json(tmp_path / name / "compare.json", c)
+    page = tmp_path / "results.md"
+    page.write_text("# Results\n\nold header\n\n## Search: old grid\n\nkept text | 1 |\n\n![plot](results_search1_pareto.png)\n\n"
+                    "## Another\n\nnot kept\n")
+    rc = search_cli.main(["results", "--compare", str(tmp_path / "main"), "--classical", str(tmp_path / "dt"),
+                          "--ceiling", str(tmp_path / "ceil"), "--keep", "Search: old", "--out", str(page)])
+    assert rc == 0
+    v = json.loads(capsys.readouterr().out)["verdicts"]
+    text = page.read_text()
+    # another surface: ORB and SIFT against their MCTS_Ne rows of the same pairs; superevent (24) < orb (33) there
+    assert v["classical_surface"]["against_main"]["orb"] == {"auc10": 33.0, "auc10_main": 30.0, "mcts_main": "ne"}
+    assert v["classical_surface"]["learned_beat_classical"] is False
+    assert "## Classical baselines on MCTS_dt\n" in text and "6 pairs, the same as in the tables above" in text
+    assert "orb 33.0 % on MCTS_dt against 30.0 % on MCTS_Ne; sift 22.0 % on MCTS_dt against 20.0 % on MCTS_Ne." in text
+    assert "**not met** (weakest learned: superevent 24.0 % on MCTS_dt, strongest classical: orb 33.0 % on MCTS_dt)" in text
+    # the ceiling: twice ORB's 30 % is 60 %, 80 % of SuperLitE's 75 % at 1 px; its own 34 % is 45 % of the ceiling
+    c = v["ceiling"]
+    assert c["noise_px"] == 1.0 and c["ceiling_auc10"] == {"superlite": 75.0, "orb": 70.0}
+    assert c["target_auc10"] == pytest.approx(60.0) and c["target_pct_of_ceiling"] == pytest.approx(80.0)
+    assert "Twice ORB's AUC@10 (60.0 %, #4's target) is 80 % of SuperLitE's ceiling at 1 px (75.0 %); with as many " \
+           "perfect matches as SuperLitE's RANSAC keeps, the ceiling is 60.0 %." in text
+    assert "AUC@10 is 70.0-75.0 % at 1 px of noise whichever method's keypoints are matched (all in view; 88.0-90.0 % at 0 px, " \
+           "75.0-80.0 % at 0.5 px, 65.0-70.0 % at 2 px)" in text
+    assert "superlite 45 %, orb 43 %" in text  # 34 / 75, 30 / 70
+    assert "superlite 12.0 of 40.0 (30 %), orb 8.0 of 40.0 (20 %)" in text
+    # per sequence: own / ceiling / at own inliers; matches, mean inliers (15), correct within 3 px, their error
+    assert "| superlite | 34.0 / 75.0 / 60.0; 40, 15, 12.0, 1.60 px |" in text
+    # the kept section verbatim, after the generated ones, named in the header; the rest of the old page is gone
+    assert text.index("## The protocol's ceiling") < text.index("## Search: old grid\n\nkept text | 1 |\n\n![plot](results_search1_pareto.png)\n")
+    assert "Carried over verbatim" in text and '"Search: old"' in text and "not kept" not in text and "old header" not in text
+    assert "--keep 'Search: old'" in text
+    # bad input: a heading the page lacks, a ceiling run without --oracle-noise-px; the page is left as it was
+    before = page.read_text()
+    assert search_cli.main(["results", "--compare", str(tmp_path / "main"), "--keep", "Nowhere", "--out", str(page)]) == 2
+    assert "no section headed '## Nowhere...' to keep" in capsys.readouterr().err
+    assert search_cli.main(["results", "--ceiling", str(tmp_path / "main"), "--out", str(page)]) == 2
+    assert "no row has field 'oracle'" in capsys.readouterr().err
+    assert page.read_text() == before

@@ -8,7 +8,8 @@
         jobs on different machines or under different load become comparable), then summarize again
     aerovis-search optuna [--search optuna] [search.n_trials=20] [TRAIN OVERRIDES ...]
         guided search configured by conf/search/<name>.yaml (see aerovis_train/search/optuna_search.py)
-    aerovis-search results [--compare DIR] [--ablation DIR [--ablation-methods REGEX] [--ablation-title TEXT]] [--search DIR ...] [--out docs/results.md]
+    aerovis-search results [--compare DIR] [--ablation DIR [--ablation-methods REGEX] [--ablation-title TEXT]]
+                           [--classical DIR ...] [--ceiling DIR] [--keep HEADING ...] [--search DIR ...] [--out docs/results.md]
         the results page from the outputs of `aerovis-eval compare` and of searches
 
 A grid search is Hydra's own: ``python train.py -m model.encoder=vgg_lite,vgg,mobilenetv3,maxvit
@@ -51,6 +52,14 @@ def _parser() -> argparse.ArgumentParser:
                                       "MCTS_dt models: their mean AUC@10 compared")
     p.add_argument("--ablation-methods", help="regular expression: only the --ablation methods whose label matches it")
     p.add_argument("--ablation-title", help="what the --ablation runs are (e.g. the network), added to its section's heading")
+    p.add_argument("--classical", action="append", default=[], metavar="DIR",
+                   help="an `aerovis-eval compare --classical-mcts KIND --out` folder: the classical detectors on another time "
+                        "surface (repeatable)")
+    p.add_argument("--ceiling", metavar="DIR", help="an `aerovis-eval compare --oracle-noise-px ... --out` folder: what perfect "
+                                                    "matches of each method's keypoints reach")
+    p.add_argument("--keep", action="append", default=[], metavar="HEADING",
+                   help="carry the section of the existing --out page whose heading starts with HEADING over verbatim "
+                        "(its inputs are gone; repeatable)")
     p.add_argument("--search", action="append", default=[], help="a search folder (repeatable)")
     p.add_argument("--out", default="docs/results.md", help="output Markdown (default docs/results.md)")
     p.add_argument("--top", type=int, default=20, help="leaderboard rows per search (default 20)")
@@ -85,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
             from .results import write_results
 
             r = write_results(args.out, args.compare, args.search, args.top, args.ablation, args.ablation_methods,
-                              args.ablation_title)
+                              args.ablation_title, classical=args.classical, ceiling=args.ceiling, keep=args.keep)
             print(f"wrote {r['out']}", file=sys.stderr)
             print(json.dumps(r))
         sys.stdout.flush()

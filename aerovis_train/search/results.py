@@ -9,11 +9,18 @@ Inputs (nothing is re-measured here, so the page always shows what the commands 
 * ``--ablation``: another ``aerovis-eval compare`` folder, of several training runs (seeds) of one
   network on each time surface (``--ablation-methods REGEX`` picks them by label): one trained model
   per side says little when two seeds of one recipe differ by several points.
+* ``--classical``: ``aerovis-eval compare --classical-mcts KIND`` folders: the classical detectors on
+  another time surface (with learned models on the same pairs).
+* ``--ceiling``: an ``aerovis-eval compare --oracle-noise-px ...`` folder: what perfect matches of each
+  method's keypoints reach under the same protocol.
 * ``--search``: folders of searches (``python train.py -m ...`` or ``aerovis-search optuna``); their
   leaderboards are (re)built by :func:`aerovis_train.search.leaderboard.summarize_dir`.
+* ``--keep HEADING``: a section of the page as it stands, carried over verbatim (for measurements
+  whose inputs are gone from this machine); the page names what it kept.
 
 Sections: all methods; the MCTS_Ne vs MCTS_dt ablation (SuperEvent+ vs SuperEvent, and over seeds); SuperLitE vs
-SuperEvent+ accuracy and speed; the classical baselines; each search's leaderboard and Pareto plot.
+SuperEvent+ accuracy and speed; the classical baselines (on the same and on other time surfaces); the
+protocol's ceiling; kept sections; each search's leaderboard and Pareto plot.
 Each section names the command that reproduces it and states, for the issue's targets and the
 paper's claims, whether this run meets them.
 """
@@ -22,6 +29,7 @@ from __future__ import annotations
 
 import json
 import os
+import shlex
 import shutil
 import time
 from pathlib import Path
@@ -140,7 +148,8 @@ def _onnx_timing_note(cmp: dict) -> str:
     if len(blocks) != 1:
         return ""
     return (f" The bundles were timed in one run, round-robin in blocks of {blocks.pop()} runs, each block after one "
-            "untimed run (`aerovis_slam.bundle.benchmark_bundles`).")
+            "untimed run (`aerovis_slam.bundle.benchmark_bundles`): ONNX Runtime's intra-op threads spin after a run, so a "
+            "model's first run after a switch shares the cores with the previous model's threads.")
 
 
 def section_all(cmp: dict) -> str:
@@ -358,6 +367,165 @@ def section_classical(cmp: dict) -> tuple[str, dict]:
     return "\n".join(lines), verdict
 
 
+def _surface(kind: str) -> str:
+    """A row's ``mcts`` as the page names it: ``ne`` -> MCTS_Ne, ``dt`` -> MCTS_dt."""
+    return {"ne": "MCTS_Ne", "dt": "MCTS_dt"}.get(kind, f"MCTS_{kind}")
+
+
+def _same_pairs(a: dict, b: dict) -> bool:
+    """Whether two comparisons scored the same pairs (same sequences, start frames and pair count)."""
+    return (a.get("pairs") == b.get("pairs") and list(a.get("sequences") or []) == list(b.get("sequences") or [])
+            and (a.get("t_start_us") or {}) == (b.get("t_start_us") or {}))
+
+
+def section_classical_surface(cmp: dict, main: dict | None = None) -> tuple[str, dict]:
+    """The classical baselines of a second comparison on another time surface (``aerovis-eval compare
+    --classical-mcts KIND``), with the learned models it ran on the same pairs, against the classical
+    rows of the main comparison ``main`` (compared only where both scored the same pairs)."""
+    rows = cmp["rows"]
+    classical = [r for r in rows if r.get("kind") == "classical"]
+    learned = [r for r in rows if r.get("kind") == "learned"]
+    surfaces = sorted({r["mcts"] for r in classical})
+    name = " and ".join(_surface(k) for k in surfaces) or "no classical detector"
+    lines = [f"## Classical baselines on {name}", "",
+             f"The classical detectors on {name}" + (", with the learned models of that run" if learned else "")
+             + f", from a second comparison. Command: `{cmp['command']}` ({cmp.get('created', 'date unknown')}); "
+             f"{cmp['pairs']} pairs" + ("" if main is None else (", the same as in the tables above" if _same_pairs(cmp, main)
+                                                                  else ", not the pairs of the tables above")) + ".", "",
+             "| method | MCTS | AUC@5 | AUC@10 | AUC@20 | matches/pair | inlier ratio |", "|---|---|---:|---:|---:|---:|---:|"]
+    for r in [*learned, *classical]:
+        lines.append(f"| {r['method']} | {r['mcts']} | {_f(r['auc5'])} | {_f(r['auc10'])} | {_f(r['auc20'])} | {_f(r['matches'])} | "
+                     f"{_f(r['inlier_ratio'], 3)} |")
+    lines.append("")
+    verdict: dict = {"surfaces": surfaces, "learned_beat_classical": None, "against_main": {}}
+    if main is not None and _same_pairs(cmp, main):
+        base = {r["method"]: r for r in main["rows"] if r.get("kind") == "classical"}
+        diffs = [(r, base[r["method"]]) for r in classical if r["method"] in base and base[r["method"]]["mcts"] != r["mcts"]]
+        verdict["against_main"] = {r["method"]: {"auc10": r["auc10"], "auc10_main": b["auc10"], "mcts_main": b["mcts"]} for r, b in diffs}
+        if diffs:
+            lines.append("AUC@10 on this surface against the tables above: "
+                         + "; ".join(f"{r['method']} {_f(r['auc10'])} % on {_surface(r['mcts'])} against {_f(b['auc10'])} % on {_surface(b['mcts'])}"
+                                     for r, b in diffs) + ".")
+    if learned and classical:
+        worst = min(learned, key=lambda r: r["auc10"])
+        best = max(classical, key=lambda r: r["auc10"])
+        ok = worst["auc10"] > best["auc10"]
+        verdict.update(learned_beat_classical=ok, worst_learned=worst["method"], best_classical=best["method"])
+        lines.append(f"Every learned model above every classical one on these surfaces: {_met(ok)} (weakest learned: "
+                     f"{worst['method']} {_f(worst['auc10'])} % on {_surface(worst['mcts'])}, strongest classical: {best['method']} "
+                     f"{_f(best['auc10'])} % on {_surface(best['mcts'])}).")
+    lines.append("")
+    return "\n".join(lines), verdict
+
+
+CEILING_REFERENCE_PX = 1.0  # the noise level the ceiling's statements quote: about an event keypoint's own error
+
+
+def section_ceiling(cmp: dict, main: dict | None = None) -> tuple[str, dict]:
+    """What perfect matches of each method's keypoints reach under the same protocol, from an
+    ``aerovis-eval compare --oracle-noise-px ...`` run (rows with ``oracle``; see
+    :func:`aerovis_train.eval.pose.summarize_oracle`), and how each method's own matches fare
+    against the same truth. The statements quote the level nearest :data:`CEILING_REFERENCE_PX`."""
+    from aerovis_train.eval.compare import oracle_table
+
+    rows = [r for r in cmp["rows"] if r.get("oracle")]
+    levels = [o["noise_px"] for o in rows[0]["oracle"]]
+    ref = min(range(len(levels)), key=lambda k: abs(levels[k] - CEILING_REFERENCE_PX))
+    level_txt = " / ".join(f"{x:g}" for x in levels)
+    lines = ["## The protocol's ceiling: perfect matches of each method's keypoints", "",
+             "Each pair is scored a second time with the method's own keypoints of the first frame matched perfectly: every "
+             "keypoint's scene point (the simulator's rendered depth) is projected into the second frame where it is in view and "
+             f"not hidden, both keypoints of a match get Gaussian noise of {level_txt} px per axis, and the matches go through "
+             "the same plain RANSAC and scoring (which keeps its best minimal five-point model unrefined, so with inexact positions "
+             "any model within the threshold can win). \"All in view\" matches every such keypoint; \"as many as own inliers\" keeps, per "
+             "pair, as many of them as the method's own RANSAC inliers. Detector scores and descriptors drop out: what is left "
+             "is where the keypoints are, how many are in view, the pixel noise and the unrefined RANSAC. The same run checks "
+             "each method's own matches against the truth: a match is correct within r px when its second keypoint lies that "
+             "close to where its first keypoint's scene point appears.", "",
+             f"Command: `{cmp['command']}` ({cmp.get('created', 'date unknown')}); {cmp['pairs']} pairs"
+             + ("" if main is None else (", the same as in the tables above" if _same_pairs(cmp, main) else ", not the pairs of the tables above"))
+             + ". AUC@10 in percent, per pair figures pooled over the sequences:", "",
+             oracle_table(rows)]
+    ceiling = {r["method"]: r["oracle"][ref]["auc10"] for r in rows}
+    at_inliers = {r["method"]: r["oracle"][ref]["auc10_at_inliers"] for r in rows}
+    verdict: dict = {"noise_px": levels[ref], "ceiling_auc10": ceiling, "ceiling_auc10_at_inliers": at_inliers}
+
+    # per sequence: own AUC@10 / ceiling / ceiling at the own inlier count; matches, inliers, correct, error per pair
+    results = cmp.get("results") or {}
+    per_seq = {r["method"]: {Path(x["sequence"]).stem: x for x in results.get(r["method"], []) if x.get("oracle")} for r in rows}
+    seqs = list(dict.fromkeys(q for m in per_seq.values() for q in m))
+    if seqs:
+        pairs = {q: next(m[q]["pairs"] for m in per_seq.values() if q in m) for q in seqs}
+        lines += [f"Per sequence: AUC@10 own / perfect matches at {levels[ref]:g} px, all in view / as many as own inliers; then "
+                  "matches, RANSAC inliers, correct within 3 px and their error, per pair:", "",
+                  "| method | " + " | ".join(f"{q} ({pairs[q]} pairs)" for q in seqs) + " |", "|---|" + "---|" * len(seqs)]
+        for m, by in per_seq.items():
+            cells = []
+            for q in seqs:
+                x = by.get(q)
+                if x is None:
+                    cells.append("")
+                    continue
+                inl = [p["inliers"] for p in x.get("per_pair", []) if p.get("inliers") is not None]
+                o = x["oracle"][ref]
+                cells.append(f"{_f(x['auc10'])} / {_f(o['auc10'])} / {_f(o['auc10_at_inliers'])}; {_f(x['matches'], 0)}, "
+                             f"{_f(float(np.mean(inl)) if inl else None, 0)}, {_f(x.get('correct_matches_3px'))}, "
+                             f"{_f(x.get('correct_error_px'), 2)} px")
+            lines.append(f"| {m} | " + " | ".join(cells) + " |")
+        lines.append("")
+
+    def span(values):
+        return f"{min(values):.1f}-{max(values):.1f}"
+
+    notes = [f"With perfect matches AUC@10 is {span(ceiling.values())} % at {levels[ref]:g} px of noise whichever method's "
+             "keypoints are matched (all in view; " + ", ".join(f"{span([r['oracle'][k]['auc10'] for r in rows])} % at {levels[k]:g} px"
+                                                                 for k in range(len(levels)) if k != ref) + ")."]
+    by = _rows_by_method(cmp)
+    lite, orb = by.get("superlite"), by.get("orb")
+    if lite and orb and lite.get("oracle"):
+        target = 2.0 * orb["auc10"]
+        c, ci = ceiling["superlite"], at_inliers["superlite"]
+        verdict.update(target_auc10=target, target_pct_of_ceiling=100.0 * target / c if c > 0 else None)
+        notes.append(f"Twice ORB's AUC@10 ({_f(target)} %, #4's target) is {_f(100.0 * target / c if c > 0 else None, 0)} % of "
+                     f"SuperLitE's ceiling at {levels[ref]:g} px ({_f(c)} %); with as many perfect matches as SuperLitE's RANSAC "
+                     f"keeps, the ceiling is {_f(ci)} %.")
+    notes.append("Own AUC@10 as a share of the ceiling at " + f"{levels[ref]:g} px: "
+                 + ", ".join(f"{r['method']} {_f(100.0 * r['auc10'] / ceiling[r['method']] if ceiling[r['method']] > 0 else None, 0)} %"
+                             for r in rows) + ".")
+    if all(r.get("correct_matches_3px") is not None for r in rows):
+        notes.append("Own matches within 3 px of the truth, per pair: "
+                     + ", ".join(f"{r['method']} {_f(r['correct_matches_3px'])} of {_f(r['matches'])} "
+                                 f"({_f(100.0 * r['correct_matches_3px'] / r['matches'] if r['matches'] else None, 0)} %)" for r in rows)
+                     + "; their median error " + ", ".join(f"{r['method']} {_f(r.get('correct_error_px'), 2)} px" for r in rows) + ".")
+    if seqs:
+        notes.append(f"Ceiling at {levels[ref]:g} px per sequence, over the methods: "
+                     + "; ".join(f"{q} {span([by_m[q]['oracle'][ref]['auc10'] for by_m in per_seq.values() if q in by_m])} %"
+                                 for q in seqs) + ".")
+    lines += ["What the figures say:", "", *[f"- {n}" for n in notes], ""]
+    return "\n".join(lines), verdict
+
+
+def keep_section(page: str | os.PathLike, heading: str) -> str:
+    """The section of an existing results page whose ``## `` heading starts with ``heading``, verbatim
+    (up to the next ``## `` heading); DataError naming the page and the heading when there is none."""
+    page = Path(page)
+    try:
+        text = page.read_text()
+    except OSError as exc:
+        raise DataError(page, f"cannot keep section {heading!r}: the page cannot be read ({exc})") from None
+    found, lines = False, []
+    for line in text.splitlines():
+        if line.startswith("## "):
+            if found:
+                break
+            found = line[3:].startswith(heading)
+        if found:
+            lines.append(line)
+    if not found:
+        raise DataError(page, f"no section headed '## {heading}...' to keep")
+    return "\n".join(lines).rstrip() + "\n"
+
+
 def section_search(summary: dict, png: str | None, top: int) -> str:
     steps = [r.get("steps") for r in summary["leaderboard"] if r.get("steps") is not None]
     walls = [r.get("train_wall_s") for r in summary["leaderboard"] if r.get("train_wall_s") is not None]
@@ -392,47 +560,78 @@ def section_search(summary: dict, png: str | None, top: int) -> str:
 
 def write_results(out: str | os.PathLike, compare: str | os.PathLike | None = None, searches: list[str] | None = None,
                   top: int = 20, ablation: str | os.PathLike | None = None, ablation_methods: str | None = None,
-                  ablation_title: str | None = None) -> dict:
-    """Generate the results page; returns ``{"out", "verdicts", "searches"}``.
+                  ablation_title: str | None = None, classical: list[str] | None = None, ceiling: str | os.PathLike | None = None,
+                  keep: list[str] | None = None) -> dict:
+    """Generate the results page; returns ``{"out", "verdicts", "searches", "kept"}``.
 
     ``ablation``: a second ``aerovis-eval compare`` folder holding several training runs per time
     surface (see :func:`section_seed_ablation`; ``ablation_methods`` selects its methods by label,
-    ``ablation_title`` names them in the heading)."""
+    ``ablation_title`` names them in the heading). ``classical``: compare folders of the classical
+    detectors on another time surface (:func:`section_classical_surface`). ``ceiling``: a compare folder
+    run with ``--oracle-noise-px`` (:func:`section_ceiling`). ``keep``: headings of sections of the page
+    at ``out`` to carry over verbatim (:func:`keep_section`), placed after the generated sections and
+    before the searches. Every input is read before the page is written, so bad input leaves it as it was."""
     out = Path(out)
     cmd = ("aerovis-search results" + (f" --compare {compare}" if compare else "")
-           + (f" --ablation {ablation}" if ablation else "") + (f" --ablation-methods '{ablation_methods}'" if ablation_methods else "")
-           + (f" --ablation-title '{ablation_title}'" if ablation_title else "")
+           + (f" --ablation {ablation}" if ablation else "") + (f" --ablation-methods {shlex.quote(ablation_methods)}" if ablation_methods else "")
+           + (f" --ablation-title {shlex.quote(ablation_title)}" if ablation_title else "")
+           + "".join(f" --classical {c}" for c in classical or []) + (f" --ceiling {ceiling}" if ceiling else "")
+           + "".join(f" --keep {shlex.quote(k)}" for k in keep or [])
            + "".join(f" --search {s}" for s in searches or []) + f" --out {out}")
+    kept = [keep_section(out, k) for k in keep or []]
+    main = load_compare(compare) if compare else None
+    others = [load_compare(c) for c in classical or []]
+    oracle = None
+    if ceiling:
+        oracle = load_compare(ceiling)
+        if not any(r.get("oracle") for r in oracle["rows"]):
+            raise DataError(Path(ceiling), "no row has field 'oracle': run `aerovis-eval compare --oracle-noise-px 0 0.5 1 2 --out DIR` "
+                                           "on a simulated preset")
+    data = sorted({str(Path(x).parent) for c in (main, *others, oracle) if c for x in c.get("sequences", [])})
     parts = ["# Results", "",
              f"Generated by `{cmd}` on {time.strftime('%Y-%m-%d')} from the outputs of the commands named in each section; "
-             "regenerate rather than edit. Data: the simulator's `bench` preset (seed 0) unless a command says otherwise.", ""]
+             "regenerate rather than edit. Data: the simulator's `bench` preset (seed 0) unless a command says otherwise"
+             + (f" (sequences from {', '.join(f'`{Path(d).name}`' for d in data)})" if data else "") + "."
+             + (" Carried over verbatim from the page as it stood, because their inputs are no longer on the machine that "
+                "generated it (each names its own command and date): " + "; ".join(f"\"{k}\"" for k in keep) + "." if keep else ""), ""]
     verdicts: dict = {}
-    if compare:
-        cmp = load_compare(compare)
-        parts.append(section_all(cmp))
-        per_seq = section_per_sequence(cmp)
+    if main is not None:
+        parts.append(section_all(main))
+        per_seq = section_per_sequence(main)
         if per_seq:
             parts.append(per_seq)
         for fn in (section_ablation, section_lite, section_classical):
-            text, v = fn(cmp)
+            text, v = fn(main)
             parts.append(text)
             verdicts[fn.__name__.removeprefix("section_")] = v
     else:
         parts += ["## Comparisons", "", "Not measured: run `aerovis-eval compare --data bench --onnx-latency --out DIR` and pass "
                   "`--compare DIR`.", ""]
+    for i, other in enumerate(others):
+        text, v = section_classical_surface(other, main)
+        parts.append(text)
+        verdicts[f"classical_surface{i + 1}" if len(others) > 1 else "classical_surface"] = v
+    if oracle is not None:
+        text, v = section_ceiling(oracle, main)
+        parts.append(text)
+        verdicts["ceiling"] = v
     if ablation:
         text, v = section_seed_ablation(load_compare(ablation), ablation_methods, ablation_title)
         parts.append(text)
         verdicts["seed_ablation"] = v
+    parts += kept
     done = []
     for i, s in enumerate(searches or []):
         summary = summarize_dir(s)
         png = None
         if summary["outputs"].get("png"):
-            name = f"{out.stem}_search{i + 1}_pareto.png"
+            n = i + 1
+            while any(f"{out.stem}_search{n}_pareto.png" in k for k in kept):  # a kept search section's plot stays
+                n += 1
+            name = f"{out.stem}_search{n}_pareto.png"
             atomic_write(out.with_name(name), lambda tmp, src=summary["outputs"]["png"]: shutil.copyfile(src, tmp))
             png = name
         parts.append(section_search(summary, png, top))
         done.append(summary["outputs"]["json"])
     write_text(out, "\n".join(parts).rstrip() + "\n")
-    return {"out": str(out), "verdicts": verdicts, "searches": done}
+    return {"out": str(out), "verdicts": verdicts, "searches": done, "kept": list(keep or [])}
