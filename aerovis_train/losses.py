@@ -6,6 +6,10 @@
   averaged over their own pairs and mixed by ``pos_weight`` (0.5): about one cell pair in a thousand
   is positive, and separate means keep the balance independent of the image size (SuperPoint's
   lambda_d = 250 does the same job for one fixed size).
+* Or (``loss.descriptor: dual_softmax``, depth supervision only): a cross-entropy of each visible
+  cell's true match among all cells of the other view, in both directions (the row and column
+  softmax of LoFTR's coarse matching). It scores the nearest-neighbour decision that mutual-nearest-
+  neighbour matching makes, where the hinge scores each cell pair against fixed margins.
 * Total = det0 + det1 + ``desc_weight`` (10) * desc.
 
 Targets come from :mod:`aerovis_train.correspondences`: with depth, cell centres warped into the
@@ -100,3 +104,47 @@ def descriptor_loss_epipolar(
     lp = F.relu(pos_margin - best[has]).mean() if bool(has.any()) else zero
     ln = F.relu(sim - neg_margin)[neg].mean() if bool(neg.any()) else zero
     return pos_weight * lp + (1 - pos_weight) * ln
+
+
+def descriptor_loss_dual_softmax(
+    desc0: torch.Tensor,
+    desc1: torch.Tensor,
+    warped01: torch.Tensor,
+    *,
+    cell: int = 8,
+    pos_px: float = 6.0,
+    neg_px: float = 12.0,
+    temperature: float = 0.1,
+) -> torch.Tensor:
+    """Dense matching cross-entropy with depth-warped cell centres (written here: the losses of the
+    matching libraries at hand (kornia's LoFTR, LightGlue) come inside their models, not on a grid of
+    our targets).
+
+    Each view-0 cell whose warped centre has a view-1 cell centre within ``pos_px`` takes the nearest one
+    as its match; its similarities to every view-1 cell, divided by ``temperature``, are a softmax over
+    which the match's negative log-likelihood is taken, and the same for the match's column over the
+    view-0 cells. Other cells within ``neg_px`` of the match's position (neighbours of the true cell,
+    whose descriptors may rightly be alike) are left out of both softmaxes.
+
+    Args:
+        desc0, desc1: (B, D, Hc, Wc) L2-normalised descriptor grids.
+        warped01: (B, Hc*Wc, 2) where each view-0 cell centre lands in view 1 (NaN: invisible).
+        temperature: scale of the cosine similarities in the softmax (0.1: logits in [-10, 10]).
+    Returns:
+        Mean of the row and column cross-entropies over the matched cells; 0 when no cell has a match.
+    """
+    B, D, hc, wc = desc1.shape
+    centres = _cell_centres(hc, wc, cell, desc0.device)
+    w = torch.nan_to_num(warped01, nan=1e9)
+    dist = torch.cdist(w, centres.unsqueeze(0).expand(B, -1, -1))  # (B, N0, N1) px
+    nearest_px, target = dist.min(2)  # (B, N0)
+    has = nearest_px <= pos_px
+    if not bool(has.any()):
+        return desc0.new_zeros(())
+    is_target = torch.zeros_like(dist, dtype=torch.bool).scatter_(2, target.unsqueeze(2), True) & has.unsqueeze(2)
+    ignore = (dist <= neg_px) & ~is_target
+    sim = torch.einsum("bdn,bdm->bnm", desc0.flatten(2), desc1.flatten(2)) / temperature
+    sim = sim.masked_fill(ignore, float("-inf"))
+    row = -torch.log_softmax(sim, dim=2)[is_target]  # each matched view-0 cell among the view-1 cells
+    col = -torch.log_softmax(sim, dim=1)[is_target]  # its match among the view-0 cells
+    return 0.5 * (row.mean() + col.mean())

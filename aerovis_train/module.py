@@ -7,7 +7,7 @@ from lightning.pytorch.utilities import rank_zero_warn
 import torch
 
 from .eval.learned import TorchDetector
-from .losses import descriptor_loss_depth, descriptor_loss_epipolar, detector_loss
+from .losses import descriptor_loss_depth, descriptor_loss_dual_softmax, descriptor_loss_epipolar, detector_loss
 from .models import build_model
 
 
@@ -40,7 +40,17 @@ class KeypointModule(L.LightningModule):
         logits0, logits1 = out["logits"][:b], out["logits"][b:]
         desc0, desc1 = out["descriptors"][:b], out["descriptors"][b:]
         kw = dict(pos_margin=lc["pos_margin"], neg_margin=lc["neg_margin"], pos_weight=lc["pos_weight"])
-        if "warp01" in batch:
+        kind = lc.get("descriptor", "hinge")
+        if kind == "dual_softmax":
+            if "warp01" not in batch:
+                raise ValueError("loss.descriptor=dual_softmax needs depth supervision (data without depth gives epipolar "
+                                 "targets): use loss.descriptor=hinge")
+            kw = dict(pos_px=lc["pos_px"], neg_px=lc["neg_px"], temperature=lc["temperature"])
+            desc = 0.5 * (descriptor_loss_dual_softmax(desc0, desc1, batch["warp01"], **kw)
+                          + descriptor_loss_dual_softmax(desc1, desc0, batch["warp10"], **kw))
+        elif kind != "hinge":
+            raise ValueError(f"loss.descriptor must be hinge or dual_softmax, not {kind!r}")
+        elif "warp01" in batch:
             kw.update(pos_px=lc["pos_px"], neg_px=lc["neg_px"])
             desc = 0.5 * (descriptor_loss_depth(desc0, desc1, batch["warp01"], **kw) + descriptor_loss_depth(desc1, desc0, batch["warp10"], **kw))
         else:

@@ -35,6 +35,7 @@ from .module import KeypointModule
 
 #: what ``model.pt`` (and ``metrics.json``) hold: the highest validation AUC@10, or the final step
 WEIGHT_SELECTIONS = ("best", "last")
+DESCRIPTOR_LOSSES = ("hinge", "dual_softmax")  # loss.descriptor (aerovis_train/losses.py)
 
 
 class _EpochSetter(Callback):
@@ -258,6 +259,12 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
     if selection not in WEIGHT_SELECTIONS:
         raise DataError(None, f"weights={selection!r}: expected one of {', '.join(WEIGHT_SELECTIONS)} "
                               "(best: highest validation AUC@10; last: the final step)")
+    descriptor_loss = str(cfg.loss.get("descriptor", "hinge"))
+    if descriptor_loss not in DESCRIPTOR_LOSSES:
+        raise DataError(None, f"loss.descriptor={descriptor_loss!r}: expected one of {', '.join(DESCRIPTOR_LOSSES)}")
+    if descriptor_loss == "dual_softmax" and str(cfg.data.get("supervision", "depth")) != "depth":
+        raise DataError(None, f"loss.descriptor=dual_softmax needs data.supervision=depth (this data has "
+                              f"{cfg.data.supervision!r}: poses only give epipolar lines, not one true cell); use loss.descriptor=hinge")
     L.seed_everything(int(cfg.seed), workers=True)
     torch.set_num_threads(int(cfg.get("torch_threads") or torch.get_num_threads()))
     run_dir = Path(cfg.run_dir)

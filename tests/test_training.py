@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import subprocess
 import sys
@@ -22,7 +23,7 @@ from aerovis_train.correspondences import (  # noqa: E402
     keypoint_matches_epipolar,
 )
 from aerovis_train.labels import cell_labels, cross_view_consistent  # noqa: E402
-from aerovis_train.losses import descriptor_loss_depth, descriptor_loss_epipolar, detector_loss  # noqa: E402
+from aerovis_train.losses import descriptor_loss_depth, descriptor_loss_dual_softmax, descriptor_loss_epipolar, detector_loss  # noqa: E402
 
 from conftest import REPO_ROOT  # noqa: E402
 
@@ -100,6 +101,37 @@ def test_losses_vanish_for_perfect_predictions():
     lines = torch.zeros(1, n, 3)
     lines[0, :, 1], lines[0, :, 2] = 1.0, -c[:, 1]  # y - y_i = 0
     assert float(descriptor_loss_epipolar(desc0, desc0, lines, pos_px=4.0, neg_px=12.0)) < 1e-6
+
+
+def test_dual_softmax_descriptor_loss_known_values():
+    """The matching cross-entropy: 0 in the limit of perfect codes, log(N) for codes that say nothing,
+    and the neighbours of a true match left out of its softmax."""
+    hc, wc = H // 8, W // 8
+    n = hc * wc
+    codes = torch.eye(n).T.reshape(1, n, hc, wc)
+    desc1 = torch.roll(codes, shifts=-1, dims=3)
+    desc1[..., -1] = 0.0
+    c = torch.from_numpy(cell_centres(H, W)).float()
+    warped = (c - torch.tensor([8.0, 0.0]))[None]
+    warped[0, c[:, 0] < 8] = float("nan")
+    # perfect orthogonal codes: the true cell's logit is 1/T, every other one 0 (neighbours within 12 px are
+    # left out: the 4-neighbours at 8 px and diagonals at 11.3 px), so each softmax gives
+    # -log(e^(1/T) / (e^(1/T) + K)) with K the cells still in it: at T = 0.01 below 1e-30
+    assert float(descriptor_loss_dual_softmax(codes, desc1, warped, temperature=0.01)) < 1e-6
+    # identical descriptors everywhere: every logit equal, so the loss is the log of the cells left in each softmax
+    flat = torch.ones(1, 4, hc, wc) / 2.0
+    got = float(descriptor_loss_dual_softmax(flat, flat, warped, temperature=0.1))
+    dist = torch.cdist(torch.nan_to_num(warped[0], nan=1e9), c)
+    near, tgt = dist.min(1)
+    has = near <= 6.0
+    target = torch.nn.functional.one_hot(tgt, n).bool() & has[:, None]
+    kept = ~((dist <= 12.0) & ~target)  # what each softmax sums over
+    row = [float(kept[i].sum()) for i in torch.nonzero(has).flatten().tolist()]
+    col = [float(kept[:, j].sum()) for j in tgt[has].tolist()]
+    assert min(row) < n  # some neighbours are left out
+    assert got == pytest.approx(0.5 * (np.log(row).mean() + np.log(col).mean()), rel=1e-5)
+    # no visible cell: no matches, no loss
+    assert float(descriptor_loss_dual_softmax(codes, desc1, torch.full_like(warped, float("nan")))) == 0.0
 
 
 def _train(tmp_path, *overrides, cache=None):
@@ -262,6 +294,22 @@ def test_weights_last_keeps_the_final_step(tmp_path, sim_cache):
     assert slim["meta"]["val_auc10"] == pytest.approx(metrics["auc10"])
     bad = _train(tmp_path / "bad", "weights=newest", cache=sim_cache)
     assert bad.returncode == 2 and "weights='newest': expected one of best, last" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_dual_softmax_descriptor_loss_trains(tmp_path, sim_cache):
+    """loss.descriptor=dual_softmax: a short run on depth supervision logs a finite descriptor loss;
+    an unknown loss, or the dual softmax on pose-only supervision, is refused before training."""
+    run = tmp_path / "run"
+    res = _train(run, "loss.descriptor=dual_softmax", "loss.desc_weight=1.0", "data.crop=[40,56]", "trainer.max_steps=2", "trainer.log_every_n_steps=1",
+                 cache=sim_cache)
+    assert res.returncode == 0, res.stderr[-3000:]
+    logged = list(csv.DictReader((next(run.rglob("metrics.csv"))).open()))
+    desc = [float(r["train/desc"]) for r in logged if r.get("train/desc")]
+    assert desc and all(np.isfinite(desc)) and min(desc) > 0  # a cross-entropy over many cells is never 0 at the start
+    bad = _train(tmp_path / "bad", "loss.descriptor=triplet", cache=sim_cache)
+    assert bad.returncode == 2 and "loss.descriptor='triplet': expected one of hinge, dual_softmax" in bad.stderr
+    bad = _train(tmp_path / "bad2", "loss.descriptor=dual_softmax", "data.supervision=epipolar", cache=sim_cache)
+    assert bad.returncode == 2 and "needs data.supervision=depth" in bad.stderr and "Traceback" not in bad.stderr
 
 
 def test_fine_tuning_starts_from_the_given_weights(tmp_path, sim_cache):
