@@ -400,3 +400,36 @@ def test_results_other_surface_ceiling_and_kept_sections(tmp_path, capsys):
     assert search_cli.main(["results", "--ceiling", str(tmp_path / "main"), "--out", str(page)]) == 2
     assert "no row has field 'oracle'" in capsys.readouterr().err
     assert page.read_text() == before
+
+
+def test_results_two_recipes(tmp_path):
+    """Two training recipes over several runs each, picked by label: the same known answer as the
+    seed ablation above (constant errors per model), the other methods listed as references."""
+    from aerovis_train.search.results import write_results
+
+    pairs = [{"t0_us": t0, "t1_us": t0 + 1} for t0 in (0, 0, 5, 5, 9, 9)]
+    err = {"d0": 2.0, "d1": 4.0, "h0": 4.0, "h1": 4.0, "orb": 1.0}
+    rows = [{"method": m, "kind": "classical" if m == "orb" else "learned", "mcts": "ne", "auc5": 0.0,
+             "auc10": 100 * (e / 12 + 10 - e) / 10, "auc20": 0.0, "matches": 40.0, "inlier_ratio": 0.5, "latency_ms": 5.0,
+             "source": f"/w/{m}.pt"} for m, e in err.items()]
+    cmp = {"command": "aerovis-eval compare --data bench --models d0=A d1=B h0=C h1=D --detectors orb --out R", "pairs": 6,
+           "sequences": ["/c/a.h5"], "rows": rows,
+           "results": {m: [{"sequence": "/c/a.h5", "auc10": 100 * (e / 12 + 10 - e) / 10, "pairs": 6,
+                            "per_pair": [{**p, "rot_err_deg": e} for p in pairs]}] for m, e in err.items()}}
+    write_json(tmp_path / "runs" / "compare.json", cmp)
+    r = write_results(tmp_path / "results.md", recipes=tmp_path / "runs", recipe=[r"dual=^d\d$", r"hinge=^h\d$"],
+                      recipes_title="SuperLitE, two seeds")
+    v = r["verdicts"]["recipes"]
+    # means 43.5/60 against 38/60 (+14.5 %; ORB at 1 deg: (1/12 + 9)/10 = 90.8 %); the interval's ends as in test_results_seed_ablation: 0 and 11/38
+    assert v["runs"] == {"dual": 2, "hinge": 2} and v["a_beats_b"] and v["wins"] == 2
+    assert v["gain_pct"] == pytest.approx(100 * 5.5 / 38) and v["gain_ci95"] == pytest.approx([0.0, 100 * 11 / 38])
+    text = (tmp_path / "results.md").read_text()
+    assert "## dual vs hinge over several training runs: SuperLitE, two seeds\n" in text
+    assert "| orb | reference | 0.0 | 90.8 | 0.0 |" in text and "| d0 | dual |" in text
+    assert "| run | a |\n|---|---:|\n| d0 | 81.7 |\n| d1 | 63.3 |\n| h0 | 63.3 |\n| h1 | 63.3 |\n| orb | 90.8 |" in text
+    assert "Relative AUC@10 gain of dual over hinge (means): +14.5 % (95 % interval +0.0 to +28.9 %" in text
+    assert "--recipe 'dual=^d\\d$' --recipe 'hinge=^h\\d$' --recipes-title 'SuperLitE, two seeds'" in text
+    with pytest.raises(DataError, match="exactly two NAME=REGEX"):
+        write_results(tmp_path / "r2.md", recipes=tmp_path / "runs", recipe=["dual=^d"])
+    r = write_results(tmp_path / "r3.md", recipes=tmp_path / "runs", recipe=["dual=^d", "hinge=^x"])
+    assert r["verdicts"]["recipes"]["a_beats_b"] is None and "Not measured: no run of hinge" in (tmp_path / "r3.md").read_text()

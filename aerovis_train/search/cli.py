@@ -9,7 +9,8 @@
     aerovis-search optuna [--search optuna] [search.n_trials=20] [TRAIN OVERRIDES ...]
         guided search configured by conf/search/<name>.yaml (see aerovis_train/search/optuna_search.py)
     aerovis-search results [--compare DIR] [--ablation DIR [--ablation-methods REGEX] [--ablation-title TEXT]]
-                           [--classical DIR ...] [--ceiling DIR] [--keep HEADING ...] [--search DIR ...] [--out docs/results.md]
+                           [--classical DIR ...] [--ceiling DIR] [--recipes DIR --recipe A=REGEX --recipe B=REGEX]
+                           [--keep HEADING ...] [--search DIR ...] [--out docs/results.md]
         the results page from the outputs of `aerovis-eval compare` and of searches
 
 A grid search is Hydra's own: ``python train.py -m model.encoder=vgg_lite,vgg,mobilenetv3,maxvit
@@ -57,6 +58,12 @@ def _parser() -> argparse.ArgumentParser:
                         "surface (repeatable)")
     p.add_argument("--ceiling", metavar="DIR", help="an `aerovis-eval compare --oracle-noise-px ... --out` folder: what perfect "
                                                     "matches of each method's keypoints reach")
+    p.add_argument("--recipes", metavar="DIR", help="an `aerovis-eval compare --out` folder with several training runs of two "
+                                                    "recipes (e.g. losses): their mean AUC@10 compared")
+    p.add_argument("--recipe", action="append", default=[], metavar="NAME=REGEX",
+                   help="a recipe of --recipes and the regular expression of its runs' labels (give two; the first is compared "
+                        "with the second)")
+    p.add_argument("--recipes-title", help="what the --recipes runs are, added to its section's heading")
     p.add_argument("--keep", action="append", default=[], metavar="HEADING",
                    help="carry the section of the existing --out page whose heading starts with HEADING over verbatim "
                         "(its inputs are gone; repeatable)")
@@ -94,7 +101,8 @@ def main(argv: list[str] | None = None) -> int:
             from .results import write_results
 
             r = write_results(args.out, args.compare, args.search, args.top, args.ablation, args.ablation_methods,
-                              args.ablation_title, classical=args.classical, ceiling=args.ceiling, keep=args.keep)
+                              args.ablation_title, classical=args.classical, ceiling=args.ceiling, keep=args.keep,
+                              recipes=args.recipes, recipe=args.recipe, recipes_title=args.recipes_title)
             print(f"wrote {r['out']}", file=sys.stderr)
             print(json.dumps(r))
         sys.stdout.flush()

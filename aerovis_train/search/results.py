@@ -13,6 +13,8 @@ Inputs (nothing is re-measured here, so the page always shows what the commands 
   another time surface (with learned models on the same pairs).
 * ``--ceiling``: an ``aerovis-eval compare --oracle-noise-px ...`` folder: what perfect matches of each
   method's keypoints reach under the same protocol.
+* ``--recipes``: a compare folder with several training runs of two recipes (``--recipe NAME=REGEX``
+  twice picks each recipe's runs by label): their mean AUC@10 compared as in ``--ablation``.
 * ``--search``: folders of searches (``python train.py -m ...`` or ``aerovis-search optuna``); their
   leaderboards are (re)built by :func:`aerovis_train.search.leaderboard.summarize_dir`.
 * ``--keep HEADING``: a section of the page as it stands, carried over verbatim (for measurements
@@ -240,6 +242,53 @@ def section_ablation(cmp: dict) -> tuple[str, dict]:
     return "\n".join(lines), verdict
 
 
+def _compare_run_groups(cmp: dict, a: list[dict], b: list[dict]) -> dict:
+    """Two groups of training runs (rows of one comparison) by their mean AUC@10: the means, their
+    spread, how many (a run, b run) pairings ``a`` wins, the relative gain of ``a`` and its interval,
+    resampling both the start frames and the runs (:func:`bootstrap_ci`; None without per-pair results)."""
+    auc = {"a": np.array([r["auc10"] for r in a], np.float64), "b": np.array([r["auc10"] for r in b], np.float64)}
+    mean = {k: float(v.mean()) for k, v in auc.items()}
+    gain = 100.0 * (mean["a"] - mean["b"]) / mean["b"] if mean["b"] > 0 else None
+    ci, clusters = None, None
+    errs = {"a": [_pair_errors(cmp, r["method"]) for r in a], "b": [_pair_errors(cmp, r["method"]) for r in b]}
+    if all(e is not None for v in errs.values() for e in v) and len({len(e[0]) for v in errs.values() for e in v}) == 1:
+        cluster = errs["a"][0][1]
+        ci = bootstrap_ci(np.stack([e[0] for e in errs["a"]]), np.stack([e[0] for e in errs["b"]]), cluster,
+                          lambda x, y: 100.0 * (x - y) / y if y > 0 else np.nan)
+        clusters = len(np.unique(cluster))
+
+    def spread(k):
+        v = auc[k]
+        sd = f" ± {v.std(ddof=1):.1f}" if len(v) > 1 else ""
+        return f"{mean[k]:.1f}{sd} % over {len(v)} run{'s' if len(v) > 1 else ''} ({v.min():.1f}-{v.max():.1f})"
+
+    return {"mean": mean, "gain": gain, "ci": ci, "wins": int(sum(x > y for x in auc["a"] for y in auc["b"])),
+            "pairings": len(a) * len(b), "spread": {k: spread(k) for k in auc},
+            "ci_txt": "" if ci is None else (f" (95 % interval {ci[0]:+.1f} to {ci[1]:+.1f} %, bootstrap over {clusters} start "
+                                             "frames and the runs of each side)")}
+
+
+def _run_rows(rows: list[tuple[str, dict]]) -> list[str]:
+    """Table lines of training runs, each with the name of its group."""
+    lines = []
+    for group, r in rows:
+        src = Path(r["source"]) if r.get("source") else None
+        # train.py writes every run's weights as <run>/model.pt: the folder tells runs apart
+        name = "" if src is None else f"`{src.parent.name}/{src.name}`" if src.name == "model.pt" else f"`{src.name}`"
+        lines.append(f"| {r['method']} | {group} | {_f(r['auc5'])} | {_f(r['auc10'])} | {_f(r['auc20'])} | {_f(r['matches'])} | "
+                     f"{_f(r['inlier_ratio'], 3)} | {name} |")
+    return lines
+
+
+def _pattern(text: str, option: str):
+    import re
+
+    try:
+        return re.compile(text)
+    except re.error as exc:
+        raise DataError(None, f"{option} {text!r} is not a regular expression ({exc})") from None
+
+
 def section_seed_ablation(cmp: dict, methods: str | None = None, title: str | None = None) -> tuple[str, dict]:
     """MCTS_Ne vs MCTS_dt over several training runs per time surface (e.g. seeds).
 
@@ -251,12 +300,7 @@ def section_seed_ablation(cmp: dict, methods: str | None = None, title: str | No
     groups' mean AUC@10 are compared, with an interval that resamples both the start frames and the
     runs (:func:`bootstrap_ci`).
     """
-    import re
-
-    try:
-        pattern = re.compile(methods) if methods is not None else None
-    except re.error as exc:
-        raise DataError(None, f"--ablation-methods {methods!r} is not a regular expression ({exc})") from None
+    pattern = _pattern(methods, "--ablation-methods") if methods is not None else None
     rows = [r for r in cmp["rows"] if r.get("kind") == "learned" and (pattern is None or pattern.search(r["method"]))]
     groups = {k: [r for r in rows if r.get("mcts") == k] for k in ("ne", "dt")}
     lines = ["## MCTS_Ne vs MCTS_dt over several training runs" + (f": {title}" if title else ""), "",
@@ -268,36 +312,59 @@ def section_seed_ablation(cmp: dict, methods: str | None = None, title: str | No
         return "\n".join(lines), verdict
     lines += ["| run | time surface | AUC@5 | AUC@10 | AUC@20 | matches/pair | inlier ratio | weights |",
               "|---|---|---:|---:|---:|---:|---:|---|"]
-    for k, surf in (("ne", "MCTS_Ne"), ("dt", "MCTS_dt")):
-        for r in groups[k]:
-            lines.append(f"| {r['method']} | {surf} | {_f(r['auc5'])} | {_f(r['auc10'])} | {_f(r['auc20'])} | {_f(r['matches'])} | "
-                         f"{_f(r['inlier_ratio'], 3)} | `{Path(r.get('source') or '?').name}` |")
-    auc = {k: np.array([r["auc10"] for r in v], np.float64) for k, v in groups.items()}
-    mean = {k: float(v.mean()) for k, v in auc.items()}
-    gain = 100.0 * (mean["ne"] - mean["dt"]) / mean["dt"] if mean["dt"] > 0 else None
-    wins = int(sum(a > b for a in auc["ne"] for b in auc["dt"]))
-    ci, ci_txt = None, ""
-    errs = {k: [_pair_errors(cmp, r["method"]) for r in v] for k, v in groups.items()}
-    if all(e is not None for v in errs.values() for e in v) and len({len(e[0]) for v in errs.values() for e in v}) == 1:
-        ea, eb = np.stack([e[0] for e in errs["ne"]]), np.stack([e[0] for e in errs["dt"]])
-        cluster = errs["ne"][0][1]
-        ci = bootstrap_ci(ea, eb, cluster, lambda x, y: 100.0 * (x - y) / y if y > 0 else np.nan)
-        ci_txt = (f" (95 % interval {ci[0]:+.1f} to {ci[1]:+.1f} %, bootstrap over {len(np.unique(cluster))} start frames "
-                  f"and the runs of each side)")
-    verdict = {"ne_beats_dt": mean["ne"] > mean["dt"], "gain_pct": gain, "gain_ci95": ci, "runs": {k: len(v) for k, v in groups.items()},
-               "auc10_mean": mean, "ne_wins": wins}
-
-    def spread(k):
-        v = auc[k]
-        sd = f" ± {v.std(ddof=1):.1f}" if len(v) > 1 else ""
-        return f"{mean[k]:.1f}{sd} % over {len(v)} run{'s' if len(v) > 1 else ''} ({v.min():.1f}-{v.max():.1f})"
-
-    lines += ["", f"AUC@10, mean ± standard deviation: MCTS_Ne {spread('ne')}, MCTS_dt {spread('dt')}. "
-                  f"MCTS_Ne is higher in {wins} of the {len(auc['ne']) * len(auc['dt'])} (MCTS_Ne run, MCTS_dt run) pairings.",
+    lines += _run_rows([("MCTS_Ne", r) for r in groups["ne"]] + [("MCTS_dt", r) for r in groups["dt"]])
+    g = _compare_run_groups(cmp, groups["ne"], groups["dt"])
+    gain, ci = g["gain"], g["ci"]
+    verdict = {"ne_beats_dt": g["mean"]["a"] > g["mean"]["b"], "gain_pct": gain, "gain_ci95": ci,
+               "runs": {k: len(v) for k, v in groups.items()}, "auc10_mean": {"ne": g["mean"]["a"], "dt": g["mean"]["b"]},
+               "ne_wins": g["wins"]}
+    lines += ["", f"AUC@10, mean ± standard deviation: MCTS_Ne {g['spread']['a']}, MCTS_dt {g['spread']['b']}. "
+                  f"MCTS_Ne is higher in {g['wins']} of the {g['pairings']} (MCTS_Ne run, MCTS_dt run) pairings.",
               "",
-              f"Relative AUC@10 gain of MCTS_Ne (means): {'n/a' if gain is None else f'{gain:+.1f}'} %{ci_txt} (paper: +{PAPER_NE_GAIN} %). "
+              f"Relative AUC@10 gain of MCTS_Ne (means): {'n/a' if gain is None else f'{gain:+.1f}'} %{g['ci_txt']} (paper: +{PAPER_NE_GAIN} %). "
               f"Target (MCTS_Ne beats MCTS_dt in AUC@10): {_met(verdict['ne_beats_dt'])}"
               + (" on the means, but the interval includes 0" if ci and ci[0] <= 0 <= ci[1] else "") + ".", ""]
+    return "\n".join(lines), verdict
+
+
+def section_recipes(cmp: dict, recipes: list[str], title: str | None = None) -> tuple[str, dict]:
+    """Two training recipes (e.g. two losses) over several runs each (e.g. seeds), on the pairs of one
+    comparison: ``recipes`` is ``["NAME=REGEX", "NAME=REGEX"]``, each picking its runs by label. The
+    first recipe's mean AUC@10 is compared with the second's as :func:`section_seed_ablation` does;
+    the comparison's other methods (e.g. a shipped model, ORB) are listed as references, and every
+    run's AUC@10 is given per sequence."""
+    if len(recipes) != 2 or any("=" not in x for x in recipes):
+        raise DataError(None, f"--recipe needs exactly two NAME=REGEX values, got {recipes}")
+    named = [(n.strip(), _pattern(rx, f"--recipe {n}")) for n, rx in (x.split("=", 1) for x in recipes)]
+    groups = {n: [r for r in cmp["rows"] if rx.search(r["method"])] for n, rx in named}
+    (na, a), (nb, b) = groups.items()
+    lines = [f"## {na} vs {nb} over several training runs" + (f": {title}" if title else ""), "",
+             f"Command: `{cmp['command']}` ({cmp.get('created', 'date unknown')}); {cmp['pairs']} pairs, the same for every run; "
+             + "; ".join(f"{n}: labels matching `{rx.pattern}`" for n, rx in named) + ".", ""]
+    verdict: dict = {"a_beats_b": None, "gain_pct": None, "gain_ci95": None, "runs": {na: len(a), nb: len(b)}}
+    empty = [n for n, v in groups.items() if not v]
+    if empty:
+        lines += [f"Not measured: no run of {' or '.join(empty)} in this comparison.", ""]
+        return "\n".join(lines), verdict
+    picked = {id(r) for r in a + b}
+    others = [r for r in cmp["rows"] if id(r) not in picked]
+    lines += ["| run | recipe | AUC@5 | AUC@10 | AUC@20 | matches/pair | inlier ratio | weights |", "|---|---|---:|---:|---:|---:|---:|---|"]
+    lines += _run_rows([(na, r) for r in a] + [(nb, r) for r in b] + [("reference", r) for r in others])
+    results = cmp.get("results") or {}
+    ordered = [r["method"] for r in a + b + others if results.get(r["method"])]
+    if ordered:
+        seqs = list(dict.fromkeys(Path(x["sequence"]).stem for m in ordered for x in results[m]))
+        auc = {(m, Path(x["sequence"]).stem): x.get("auc10") for m in ordered for x in results[m]}
+        lines += ["", "AUC@10 per sequence:", "", "| run | " + " | ".join(seqs) + " |", "|---|" + "---:|" * len(seqs)]
+        lines += [f"| {m} | " + " | ".join(_f(auc.get((m, q))) for q in seqs) + " |" for m in ordered]
+    g = _compare_run_groups(cmp, a, b)
+    verdict = {"a_beats_b": g["mean"]["a"] > g["mean"]["b"], "gain_pct": g["gain"], "gain_ci95": g["ci"],
+               "runs": {na: len(a), nb: len(b)}, "auc10_mean": {na: g["mean"]["a"], nb: g["mean"]["b"]}, "wins": g["wins"]}
+    gain = g["gain"]
+    lines += ["", f"AUC@10, mean ± standard deviation: {na} {g['spread']['a']}, {nb} {g['spread']['b']}. "
+                  f"{na} is higher in {g['wins']} of the {g['pairings']} ({na} run, {nb} run) pairings.", "",
+              f"Relative AUC@10 gain of {na} over {nb} (means): {'n/a' if gain is None else f'{gain:+.1f}'} %{g['ci_txt']}"
+              + ("; the interval includes 0" if g["ci"] and g["ci"][0] <= 0 <= g["ci"][1] else "") + ".", ""]
     return "\n".join(lines), verdict
 
 
@@ -561,14 +628,16 @@ def section_search(summary: dict, png: str | None, top: int) -> str:
 def write_results(out: str | os.PathLike, compare: str | os.PathLike | None = None, searches: list[str] | None = None,
                   top: int = 20, ablation: str | os.PathLike | None = None, ablation_methods: str | None = None,
                   ablation_title: str | None = None, classical: list[str] | None = None, ceiling: str | os.PathLike | None = None,
-                  keep: list[str] | None = None) -> dict:
+                  keep: list[str] | None = None, recipes: str | os.PathLike | None = None, recipe: list[str] | None = None,
+                  recipes_title: str | None = None) -> dict:
     """Generate the results page; returns ``{"out", "verdicts", "searches", "kept"}``.
 
     ``ablation``: a second ``aerovis-eval compare`` folder holding several training runs per time
     surface (see :func:`section_seed_ablation`; ``ablation_methods`` selects its methods by label,
     ``ablation_title`` names them in the heading). ``classical``: compare folders of the classical
     detectors on another time surface (:func:`section_classical_surface`). ``ceiling``: a compare folder
-    run with ``--oracle-noise-px`` (:func:`section_ceiling`). ``keep``: headings of sections of the page
+    run with ``--oracle-noise-px`` (:func:`section_ceiling`). ``recipes``: a compare folder with several runs
+    of two training recipes, picked by ``recipe`` (``["NAME=REGEX", "NAME=REGEX"]``; :func:`section_recipes`). ``keep``: headings of sections of the page
     at ``out`` to carry over verbatim (:func:`keep_section`), placed after the generated sections and
     before the searches. Every input is read before the page is written, so bad input leaves it as it was."""
     out = Path(out)
@@ -576,11 +645,14 @@ def write_results(out: str | os.PathLike, compare: str | os.PathLike | None = No
            + (f" --ablation {ablation}" if ablation else "") + (f" --ablation-methods {shlex.quote(ablation_methods)}" if ablation_methods else "")
            + (f" --ablation-title {shlex.quote(ablation_title)}" if ablation_title else "")
            + "".join(f" --classical {c}" for c in classical or []) + (f" --ceiling {ceiling}" if ceiling else "")
+           + (f" --recipes {recipes}" if recipes else "") + "".join(f" --recipe {shlex.quote(x)}" for x in recipe or [])
+           + (f" --recipes-title {shlex.quote(recipes_title)}" if recipes_title else "")
            + "".join(f" --keep {shlex.quote(k)}" for k in keep or [])
            + "".join(f" --search {s}" for s in searches or []) + f" --out {out}")
     kept = [keep_section(out, k) for k in keep or []]
     main = load_compare(compare) if compare else None
     others = [load_compare(c) for c in classical or []]
+    recipe_cmp = load_compare(recipes) if recipes else None
     oracle = None
     if ceiling:
         oracle = load_compare(ceiling)
@@ -619,6 +691,10 @@ def write_results(out: str | os.PathLike, compare: str | os.PathLike | None = No
         text, v = section_seed_ablation(load_compare(ablation), ablation_methods, ablation_title)
         parts.append(text)
         verdicts["seed_ablation"] = v
+    if recipe_cmp is not None:
+        text, v = section_recipes(recipe_cmp, list(recipe or []), recipes_title)
+        parts.append(text)
+        verdicts["recipes"] = v
     parts += kept
     done = []
     for i, s in enumerate(searches or []):
