@@ -35,6 +35,14 @@ def _cell_centres(hc: int, wc: int, cell: int, device) -> torch.Tensor:
     return torch.from_numpy(cell_centres(hc * cell, wc * cell, cell)).float().to(device)
 
 
+def _warp_distances(desc1: torch.Tensor, warped01: torch.Tensor, cell: int) -> torch.Tensor:
+    """(B, N0, N1) px from where each view-0 cell centre lands in view 1 (``warped01``, NaN: invisible,
+    then far from everything) to every view-1 cell centre of the (B, D, Hc, Wc) grid ``desc1``."""
+    B, _, hc, wc = desc1.shape
+    centres = _cell_centres(hc, wc, cell, desc1.device)
+    return torch.cdist(torch.nan_to_num(warped01, nan=1e9), centres.unsqueeze(0).expand(B, -1, -1))
+
+
 def _hinge(sim, pos, neg, pos_margin, neg_margin, pos_weight):
     zero = sim.new_zeros(())
     lp = F.relu(pos_margin - sim)[pos].mean() if bool(pos.any()) else zero
@@ -63,10 +71,7 @@ def descriptor_loss_depth(
             the nearest cell centre is at most 4*sqrt(2) = 5.7 px away, so a visible point always has one).
         neg_px: beyond this, negatives; in between ignored. Invisible cells are negatives to all.
     """
-    B, D, hc, wc = desc1.shape
-    centres = _cell_centres(hc, wc, cell, desc0.device)
-    w = torch.nan_to_num(warped01, nan=1e9)
-    dist = torch.cdist(w, centres.unsqueeze(0).expand(B, -1, -1))  # (B, N0, N1)
+    dist = _warp_distances(desc1, warped01, cell)
     pos = dist <= pos_px
     neg = dist > neg_px
     sim = torch.einsum("bdn,bdm->bnm", desc0.flatten(2), desc1.flatten(2))
@@ -133,10 +138,7 @@ def descriptor_loss_dual_softmax(
     Returns:
         Mean of the row and column cross-entropies over the matched cells; 0 when no cell has a match.
     """
-    B, D, hc, wc = desc1.shape
-    centres = _cell_centres(hc, wc, cell, desc0.device)
-    w = torch.nan_to_num(warped01, nan=1e9)
-    dist = torch.cdist(w, centres.unsqueeze(0).expand(B, -1, -1))  # (B, N0, N1) px
+    dist = _warp_distances(desc1, warped01, cell)
     nearest_px, target = dist.min(2)  # (B, N0)
     has = nearest_px <= pos_px
     if not bool(has.any()):
