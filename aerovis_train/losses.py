@@ -24,6 +24,9 @@ import torch.nn.functional as F
 
 from .correspondences import cell_centres
 
+#: the descriptor losses ``loss.descriptor`` names
+DESCRIPTOR_LOSSES = ("hinge", "dual_softmax")
+
 
 def detector_loss(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
     """Cross-entropy of (B, 65, Hc, Wc) logits against (B, Hc, Wc) int64 labels (-100 = ignore)."""

@@ -7,7 +7,7 @@ from lightning.pytorch.utilities import rank_zero_warn
 import torch
 
 from .eval.learned import TorchDetector
-from .losses import descriptor_loss_depth, descriptor_loss_dual_softmax, descriptor_loss_epipolar, detector_loss
+from .losses import DESCRIPTOR_LOSSES, descriptor_loss_depth, descriptor_loss_dual_softmax, descriptor_loss_epipolar, detector_loss
 from .models import build_model
 
 
@@ -39,23 +39,24 @@ class KeypointModule(L.LightningModule):
         out = self.model(torch.cat([batch["mcts0"], batch["mcts1"]]))
         logits0, logits1 = out["logits"][:b], out["logits"][b:]
         desc0, desc1 = out["descriptors"][:b], out["descriptors"][b:]
-        kw = dict(pos_margin=lc["pos_margin"], neg_margin=lc["neg_margin"], pos_weight=lc["pos_weight"])
         kind = lc.get("descriptor", "hinge")
-        if kind == "dual_softmax":
-            if "warp01" not in batch:
-                raise ValueError("loss.descriptor=dual_softmax needs depth supervision (data without depth gives epipolar "
-                                 "targets): use loss.descriptor=hinge")
-            kw = dict(pos_px=lc["pos_px"], neg_px=lc["neg_px"], temperature=lc["temperature"])
-            desc = 0.5 * (descriptor_loss_dual_softmax(desc0, desc1, batch["warp01"], **kw)
-                          + descriptor_loss_dual_softmax(desc1, desc0, batch["warp10"], **kw))
-        elif kind != "hinge":
-            raise ValueError(f"loss.descriptor must be hinge or dual_softmax, not {kind!r}")
-        elif "warp01" in batch:
-            kw.update(pos_px=lc["pos_px"], neg_px=lc["neg_px"])
-            desc = 0.5 * (descriptor_loss_depth(desc0, desc1, batch["warp01"], **kw) + descriptor_loss_depth(desc1, desc0, batch["warp10"], **kw))
+        if kind not in DESCRIPTOR_LOSSES:
+            raise ValueError(f"loss.descriptor must be one of {', '.join(DESCRIPTOR_LOSSES)}, not {kind!r}")
+        hinge = dict(pos_margin=lc["pos_margin"], neg_margin=lc["neg_margin"], pos_weight=lc["pos_weight"])
+        if "warp01" in batch:
+            targets = batch["warp01"], batch["warp10"]
+            if kind == "dual_softmax":
+                loss_fn, kw = descriptor_loss_dual_softmax, dict(pos_px=lc["pos_px"], neg_px=lc["neg_px"], temperature=lc["temperature"])
+            else:
+                loss_fn, kw = descriptor_loss_depth, dict(hinge, pos_px=lc["pos_px"], neg_px=lc["neg_px"])
+        elif kind == "dual_softmax":
+            raise ValueError("loss.descriptor=dual_softmax needs depth supervision (data without depth gives epipolar "
+                             "targets): use loss.descriptor=hinge")
         else:
-            kw.update(pos_px=lc["epipolar_pos_px"], neg_px=lc["neg_px"])
-            desc = 0.5 * (descriptor_loss_epipolar(desc0, desc1, batch["lines01"], **kw) + descriptor_loss_epipolar(desc1, desc0, batch["lines10"], **kw))
+            targets = batch["lines01"], batch["lines10"]
+            loss_fn, kw = descriptor_loss_epipolar, dict(hinge, pos_px=lc["epipolar_pos_px"], neg_px=lc["neg_px"])
+        # both directions: view 0 against view 1 and view 1 against view 0
+        desc = 0.5 * (loss_fn(desc0, desc1, targets[0], **kw) + loss_fn(desc1, desc0, targets[1], **kw))
         det0, det1 = detector_loss(logits0, batch["labels0"]), detector_loss(logits1, batch["labels1"])
         total = det0 + det1 + lc["desc_weight"] * desc
         return {"loss": total, "det0": det0, "det1": det1, "desc": desc}

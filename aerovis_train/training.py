@@ -31,11 +31,11 @@ from aerovis_slam.errors import DataError
 from .checkpoints import AtomicCheckpointIO, lightning_model_state, save_slim
 from .data import EventPairDataset, make_loader, mcts_spec_from_config
 from .models import count_parameters
+from .losses import DESCRIPTOR_LOSSES
 from .module import KeypointModule
 
 #: what ``model.pt`` (and ``metrics.json``) hold: the highest validation AUC@10, or the final step
 WEIGHT_SELECTIONS = ("best", "last")
-DESCRIPTOR_LOSSES = ("hinge", "dual_softmax")  # loss.descriptor (aerovis_train/losses.py)
 
 
 class _EpochSetter(Callback):
