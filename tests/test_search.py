@@ -332,6 +332,19 @@ def test_results_seed_ablation(tmp_path):
     with pytest.raises(DataError, match="--ablation-methods"):
         write_results(tmp_path / "r3.md", ablation=tmp_path / "seeds", ablation_methods="(ne")
     assert not (tmp_path / "r3.md").exists()
+    # repeated --ablation: one section each, its methods and title paired by position (the same folder twice
+    # here: the second section keeps the first seed of each side, ne0 at 2 deg against dt0 at 4 deg: 49/38 - 1)
+    r = write_results(tmp_path / "r4.md", ablation=[tmp_path / "seeds", tmp_path / "seeds"],
+                      ablation_methods=[r"^(ne|dt)\d+$", r"^(ne|dt)0$"], ablation_title=["two seeds", "seed 0"])
+    v1, v2 = r["verdicts"]["seed_ablation1"], r["verdicts"]["seed_ablation2"]
+    assert v1["gain_pct"] == pytest.approx(100 * 5.5 / 38) and v2["runs"] == {"ne": 1, "dt": 1}
+    assert v2["gain_pct"] == pytest.approx(100 * 11 / 38)
+    text = (tmp_path / "r4.md").read_text()
+    assert text.index("training runs: two seeds\n") < text.index("training runs: seed 0\n")
+    assert "--ablation-methods '^(ne|dt)0$' --ablation-title 'seed 0'" in text
+    with pytest.raises(DataError, match="at most one of each per --ablation"):
+        write_results(tmp_path / "r5.md", ablation=tmp_path / "seeds", ablation_title=["a", "b"])
+    assert not (tmp_path / "r5.md").exists()
 
 
 def test_results_other_surface_ceiling_and_kept_sections(tmp_path, capsys):

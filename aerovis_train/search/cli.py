@@ -8,7 +8,7 @@
         jobs on different machines or under different load become comparable), then summarize again
     aerovis-search optuna [--search optuna] [search.n_trials=20] [TRAIN OVERRIDES ...]
         guided search configured by conf/search/<name>.yaml (see aerovis_train/search/optuna_search.py)
-    aerovis-search results [--compare DIR] [--ablation DIR [--ablation-methods REGEX] [--ablation-title TEXT]]
+    aerovis-search results [--compare DIR] [--ablation DIR [--ablation-methods REGEX] [--ablation-title TEXT] ...]
                            [--classical DIR ...] [--ceiling DIR] [--recipes DIR --recipe A=REGEX --recipe B=REGEX]
                            [--keep HEADING ...] [--search DIR ...] [--out docs/results.md]
         the results page from the outputs of `aerovis-eval compare` and of searches
@@ -49,10 +49,14 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("overrides", nargs="*", help="search.* overrides and train.py overrides applied to every trial")
     p = sub.add_parser("results", help="write docs/results.md from `aerovis-eval compare --out` and search folders")
     p.add_argument("--compare", help="folder (or compare.json) written by `aerovis-eval compare --out`")
-    p.add_argument("--ablation", help="an `aerovis-eval compare --out` folder with several training runs (seeds) of MCTS_Ne and "
-                                      "MCTS_dt models: their mean AUC@10 compared")
-    p.add_argument("--ablation-methods", help="regular expression: only the --ablation methods whose label matches it")
-    p.add_argument("--ablation-title", help="what the --ablation runs are (e.g. the network), added to its section's heading")
+    p.add_argument("--ablation", action="append", default=[], metavar="DIR",
+                   help="an `aerovis-eval compare --out` folder with several training runs (seeds) of MCTS_Ne and MCTS_dt "
+                        "models: their mean AUC@10 compared (repeatable: one section each)")
+    p.add_argument("--ablation-methods", action="append", default=[], metavar="REGEX",
+                   help="regular expression: only the methods of the --ablation (the n-th for the n-th) whose label matches it")
+    p.add_argument("--ablation-title", action="append", default=[], metavar="TEXT",
+                   help="what the runs of the --ablation (the n-th for the n-th) are (e.g. the network), added to its "
+                        "section's heading")
     p.add_argument("--classical", action="append", default=[], metavar="DIR",
                    help="an `aerovis-eval compare --classical-mcts KIND --out` folder: the classical detectors on another time "
                         "surface (repeatable)")

@@ -1,6 +1,6 @@
 """``docs/results.md``: the measured tables, generated from the outputs of the commands that measure them.
 
-    aerovis-search results --compare RUN/compare [--ablation RUN/seeds] [--search MULTIRUN_DIR ...] [--out docs/results.md]
+    aerovis-search results --compare RUN/compare [--ablation RUN/seeds ...] [--search MULTIRUN_DIR ...] [--out docs/results.md]
 
 Inputs (nothing is re-measured here, so the page always shows what the commands wrote):
 
@@ -8,7 +8,9 @@ Inputs (nothing is re-measured here, so the page always shows what the commands 
   --onnx-latency --out DIR``: every model and baseline on the same pairs.
 * ``--ablation``: another ``aerovis-eval compare`` folder, of several training runs (seeds) of one
   network on each time surface (``--ablation-methods REGEX`` picks them by label): one trained model
-  per side says little when two seeds of one recipe differ by several points.
+  per side says little when two seeds of one recipe differ by several points. Repeatable (each
+  ``--ablation`` with its own ``--ablation-methods`` and ``--ablation-title``, in the same order), so
+  that the runs of several networks or recipes stand side by side.
 * ``--classical``: ``aerovis-eval compare --classical-mcts KIND`` folders: the classical detectors on
   another time surface (with learned models on the same pairs).
 * ``--ceiling``: an ``aerovis-eval compare --oracle-noise-px ...`` folder: what perfect matches of each
@@ -625,25 +627,42 @@ def section_search(summary: dict, png: str | None, top: int) -> str:
     return "\n".join(lines)
 
 
+def _as_list(x) -> list:
+    """``None`` -> ``[]``, one value -> ``[value]``, a list or tuple as a list (repeatable options)."""
+    if x is None:
+        return []
+    return list(x) if isinstance(x, (list, tuple)) else [x]
+
+
 def write_results(out: str | os.PathLike, compare: str | os.PathLike | None = None, searches: list[str] | None = None,
-                  top: int = 20, ablation: str | os.PathLike | None = None, ablation_methods: str | None = None,
-                  ablation_title: str | None = None, classical: list[str] | None = None, ceiling: str | os.PathLike | None = None,
+                  top: int = 20, ablation: str | os.PathLike | list | None = None, ablation_methods: str | list | None = None,
+                  ablation_title: str | list | None = None, classical: list[str] | None = None, ceiling: str | os.PathLike | None = None,
                   keep: list[str] | None = None, recipes: str | os.PathLike | None = None, recipe: list[str] | None = None,
                   recipes_title: str | None = None) -> dict:
     """Generate the results page; returns ``{"out", "verdicts", "searches", "kept"}``.
 
     ``ablation``: a second ``aerovis-eval compare`` folder holding several training runs per time
     surface (see :func:`section_seed_ablation`; ``ablation_methods`` selects its methods by label,
-    ``ablation_title`` names them in the heading). ``classical``: compare folders of the classical
+    ``ablation_title`` names them in the heading), or a list of such folders, one section each, with
+    lists of methods and titles in the same order (shorter lists: the missing ones unset). ``classical``: compare folders of the classical
     detectors on another time surface (:func:`section_classical_surface`). ``ceiling``: a compare folder
     run with ``--oracle-noise-px`` (:func:`section_ceiling`). ``recipes``: a compare folder with several runs
     of two training recipes, picked by ``recipe`` (``["NAME=REGEX", "NAME=REGEX"]``; :func:`section_recipes`). ``keep``: headings of sections of the page
     at ``out`` to carry over verbatim (:func:`keep_section`), placed after the generated sections and
     before the searches. Every input is read before the page is written, so bad input leaves it as it was."""
     out = Path(out)
+    ablations = _as_list(ablation)
+    ablation_methods, ablation_title = _as_list(ablation_methods), _as_list(ablation_title)
+    if len(ablation_methods) > len(ablations) or len(ablation_title) > len(ablations):
+        raise DataError(Path(str(ablations[-1] if ablations else "--ablation")),
+                        f"{len(ablations)} --ablation folder(s) but {len(ablation_methods)} --ablation-methods and "
+                        f"{len(ablation_title)} --ablation-title: at most one of each per --ablation, in the same order")
+    ablation_methods += [None] * (len(ablations) - len(ablation_methods))
+    ablation_title += [None] * (len(ablations) - len(ablation_title))
     cmd = ("aerovis-search results" + (f" --compare {compare}" if compare else "")
-           + (f" --ablation {ablation}" if ablation else "") + (f" --ablation-methods {shlex.quote(ablation_methods)}" if ablation_methods else "")
-           + (f" --ablation-title {shlex.quote(ablation_title)}" if ablation_title else "")
+           + "".join(f" --ablation {a}" + (f" --ablation-methods {shlex.quote(m)}" if m else "")
+                     + (f" --ablation-title {shlex.quote(t)}" if t else "")
+                     for a, m, t in zip(ablations, ablation_methods, ablation_title))
            + "".join(f" --classical {c}" for c in classical or []) + (f" --ceiling {ceiling}" if ceiling else "")
            + (f" --recipes {recipes}" if recipes else "") + "".join(f" --recipe {shlex.quote(x)}" for x in recipe or [])
            + (f" --recipes-title {shlex.quote(recipes_title)}" if recipes_title else "")
@@ -652,6 +671,7 @@ def write_results(out: str | os.PathLike, compare: str | os.PathLike | None = No
     kept = [keep_section(out, k) for k in keep or []]
     main = load_compare(compare) if compare else None
     others = [load_compare(c) for c in classical or []]
+    seed_runs = [load_compare(a) for a in ablations]
     recipe_cmp = load_compare(recipes) if recipes else None
     oracle = None
     if ceiling:
@@ -687,10 +707,10 @@ def write_results(out: str | os.PathLike, compare: str | os.PathLike | None = No
         text, v = section_ceiling(oracle, main)
         parts.append(text)
         verdicts["ceiling"] = v
-    if ablation:
-        text, v = section_seed_ablation(load_compare(ablation), ablation_methods, ablation_title)
+    for i, (runs, methods, title) in enumerate(zip(seed_runs, ablation_methods, ablation_title)):
+        text, v = section_seed_ablation(runs, methods, title)
         parts.append(text)
-        verdicts["seed_ablation"] = v
+        verdicts[f"seed_ablation{i + 1}" if len(seed_runs) > 1 else "seed_ablation"] = v
     if recipe_cmp is not None:
         text, v = section_recipes(recipe_cmp, list(recipe or []), recipes_title)
         parts.append(text)
