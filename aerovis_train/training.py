@@ -210,9 +210,12 @@ def event_cache_dir(cfg: DictConfig) -> Path | None:
     return Path(str(setting)).expanduser()
 
 
-def init_from_weights(model: torch.nn.Module, name_or_path: str, model_cfg) -> None:
+def init_from_weights(model: torch.nn.Module, name_or_path: str, model_cfg) -> dict:
     """Load the weights of a shipped model (``superlite``...), a ``model.pt`` or a ``train.py`` ``.ckpt``
     into ``model`` before training (``init_weights=...``: fine-tuning, e.g. on a user's recordings).
+
+    Returns:
+        ``{"path", "sha256"}`` of the weights loaded, recorded in the run's ``model.pt`` (its provenance).
 
     Raises:
         DataError: unreadable weights, or weights of another architecture (named with both models).
@@ -233,6 +236,7 @@ def init_from_weights(model: torch.nn.Module, name_or_path: str, model_cfg) -> N
         print(f"train.py: note: init_weights {meta['path']} was trained on MCTS {src_cfg.get('mcts')}; this run uses "
               f"{run_mcts}", file=sys.stderr)
     print(f"initialised from {meta['path']} (sha256 {meta['sha256'][:12]})")
+    return {"path": meta["path"], "sha256": meta["sha256"]}
 
 
 def job_overrides() -> list[str] | None:
@@ -293,10 +297,14 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
     )
     last = ckpt_dir / "last.ckpt"
     resume = last if (cfg.get("resume", True) and last.exists()) else None
+    init_meta = None  # where the weights started (model.pt's meta): None for a run from scratch
     if resume:
         print(f"resuming from {resume}")
+        if cfg.get("init_weights"):
+            # the first start loaded them; their file may have changed since, so only the name is recorded
+            init_meta = {"path": str(cfg.init_weights), "sha256": None}
     elif cfg.get("init_weights"):
-        init_from_weights(module.model, cfg.init_weights, cfg.model)
+        init_meta = init_from_weights(module.model, cfg.init_weights, cfg.model)
     trainer.fit(module, loader, val_loader, ckpt_path=str(resume) if resume else None)
 
     best_auc = float(best_cb.best_model_score) if best_cb.best_model_score is not None else float("nan")
@@ -324,7 +332,8 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
         ckpt = torch.load(selected, map_location="cpu", weights_only=False)
         slim = save_slim(module.cfg["model"], lightning_model_state(ckpt), slim_path,
                          meta={"val_auc10": selected_auc, "seed": int(cfg.seed), "data": OmegaConf.to_container(cfg.data, resolve=True),
-                               "global_step": int(ckpt.get("global_step", 0)), "selection": selection})
+                               "global_step": int(ckpt.get("global_step", 0)), "selection": selection,
+                               "descriptor_loss": str(cfg.loss.descriptor), "init_weights": init_meta})
     summary = {
         "model": cfg.model.name,
         "best_val_auc10": best_auc,

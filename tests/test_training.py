@@ -329,6 +329,11 @@ def test_fine_tuning_starts_from_the_given_weights(tmp_path, sim_cache):
     tuned_params = dict(tuned.named_parameters())
     for k, a in ship.named_parameters():
         assert torch.equal(a, tuned_params[k]), k
+    # the start is recorded in the run's weights: the shipped file, by its hash
+    from aerovis_train.checkpoints import WEIGHTS_DIR, file_sha256
+
+    meta = torch.load(run / "model.pt", map_location="cpu", weights_only=False)["meta"]
+    assert meta["init_weights"]["sha256"] == file_sha256(WEIGHTS_DIR / "superlite.pt") and meta["descriptor_loss"] == "hinge"
     # in-process (train.py turns this DataError into exit status 2, see the test below)
     from aerovis_slam.errors import DataError
     from aerovis_train.benchmarks import compose_config
