@@ -10,6 +10,10 @@
   cell's true match among all cells of the other view, in both directions (the row and column
   softmax of LoFTR's coarse matching). It scores the nearest-neighbour decision that mutual-nearest-
   neighbour matching makes, where the hinge scores each cell pair against fixed margins.
+* Or (``loss.descriptor: hinge+dual_softmax``, depth only): both, hinge + ``dual_softmax_weight`` (0.1)
+  * dual softmax. The softmax ranks the true match first; the hinge keeps similarities calibrated
+  (true matches near 1, others below 0.2), which a fixed similarity threshold, as in the SLAM
+  runtime's tracking, relies on.
 * Total = det0 + det1 + ``desc_weight`` (10) * desc.
 
 Targets come from :mod:`aerovis_train.correspondences`: with depth, cell centres warped into the
@@ -25,7 +29,7 @@ import torch.nn.functional as F
 from .correspondences import cell_centres
 
 #: the descriptor losses ``loss.descriptor`` names
-DESCRIPTOR_LOSSES = ("hinge", "dual_softmax")
+DESCRIPTOR_LOSSES = ("hinge", "dual_softmax", "hinge+dual_softmax")
 
 
 def detector_loss(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:

@@ -42,21 +42,26 @@ class KeypointModule(L.LightningModule):
         kind = lc.get("descriptor", "hinge")
         if kind not in DESCRIPTOR_LOSSES:
             raise ValueError(f"loss.descriptor must be one of {', '.join(DESCRIPTOR_LOSSES)}, not {kind!r}")
+        terms = kind.split("+")
         hinge = dict(pos_margin=lc["pos_margin"], neg_margin=lc["neg_margin"], pos_weight=lc["pos_weight"])
         if "warp01" in batch:
             targets = batch["warp01"], batch["warp10"]
-            if kind == "dual_softmax":
-                loss_fn, kw = descriptor_loss_dual_softmax, dict(pos_px=lc["pos_px"], neg_px=lc["neg_px"], temperature=lc["temperature"])
-            else:
-                loss_fn, kw = descriptor_loss_depth, dict(hinge, pos_px=lc["pos_px"], neg_px=lc["neg_px"])
-        elif kind == "dual_softmax":
-            raise ValueError("loss.descriptor=dual_softmax needs depth supervision (data without depth gives epipolar "
+            fns = {"hinge": (descriptor_loss_depth, dict(hinge, pos_px=lc["pos_px"], neg_px=lc["neg_px"])),
+                   "dual_softmax": (descriptor_loss_dual_softmax,
+                                    dict(pos_px=lc["pos_px"], neg_px=lc["neg_px"], temperature=lc["temperature"]))}
+        elif "dual_softmax" in terms:
+            raise ValueError(f"loss.descriptor={kind} needs depth supervision (data without depth gives epipolar "
                              "targets): use loss.descriptor=hinge")
         else:
             targets = batch["lines01"], batch["lines10"]
-            loss_fn, kw = descriptor_loss_epipolar, dict(hinge, pos_px=lc["epipolar_pos_px"], neg_px=lc["neg_px"])
-        # both directions: view 0 against view 1 and view 1 against view 0
-        desc = 0.5 * (loss_fn(desc0, desc1, targets[0], **kw) + loss_fn(desc1, desc0, targets[1], **kw))
+            fns = {"hinge": (descriptor_loss_epipolar, dict(hinge, pos_px=lc["epipolar_pos_px"], neg_px=lc["neg_px"]))}
+        # the combination's softmax term is scaled by loss.dual_softmax_weight relative to the hinge
+        weights = {"hinge": 1.0, "dual_softmax": float(lc.get("dual_softmax_weight", 0.1)) if len(terms) > 1 else 1.0}
+        desc = 0.0
+        for term in terms:
+            loss_fn, kw = fns[term]
+            # both directions: view 0 against view 1 and view 1 against view 0
+            desc = desc + weights[term] * 0.5 * (loss_fn(desc0, desc1, targets[0], **kw) + loss_fn(desc1, desc0, targets[1], **kw))
         det0, det1 = detector_loss(logits0, batch["labels0"]), detector_loss(logits1, batch["labels1"])
         total = det0 + det1 + lc["desc_weight"] * desc
         return {"loss": total, "det0": det0, "det1": det1, "desc": desc}

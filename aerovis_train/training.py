@@ -266,8 +266,8 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
     descriptor_loss = str(cfg.loss.get("descriptor", "hinge"))
     if descriptor_loss not in DESCRIPTOR_LOSSES:
         raise DataError(None, f"loss.descriptor={descriptor_loss!r}: expected one of {', '.join(DESCRIPTOR_LOSSES)}")
-    if descriptor_loss == "dual_softmax" and str(cfg.data.get("supervision", "depth")) != "depth":
-        raise DataError(None, f"loss.descriptor=dual_softmax needs data.supervision=depth (this data has "
+    if "dual_softmax" in descriptor_loss.split("+") and str(cfg.data.get("supervision", "depth")) != "depth":
+        raise DataError(None, f"loss.descriptor={descriptor_loss} needs data.supervision=depth (this data has "
                               f"{cfg.data.supervision!r}: poses only give epipolar lines, not one true cell); use loss.descriptor=hinge")
     L.seed_everything(int(cfg.seed), workers=True)
     torch.set_num_threads(int(cfg.get("torch_threads") or torch.get_num_threads()))

@@ -296,6 +296,35 @@ def test_weights_last_keeps_the_final_step(tmp_path, sim_cache):
     assert bad.returncode == 2 and "weights='newest': expected one of best, last" in bad.stderr and "Traceback" not in bad.stderr
 
 
+def test_combined_descriptor_loss_is_the_weighted_sum():
+    """loss.descriptor=hinge+dual_softmax: the descriptor term is hinge + dual_softmax_weight * dual
+    softmax, each as its own setting computes it on the same batch, with depth targets of a known wall."""
+    from omegaconf import OmegaConf
+
+    from aerovis_train.models import CONF_DIR
+    from aerovis_train.module import KeypointModule
+
+    base = OmegaConf.load(CONF_DIR / "config.yaml")
+    cfg = {"model": OmegaConf.to_container(OmegaConf.load(CONF_DIR / "model" / "superlite.yaml"), resolve=True),
+           "loss": OmegaConf.to_container(base.loss), "optim": OmegaConf.to_container(base.optim), "val": {}}
+    v0, v1 = wall_views(tx=0.05)
+    w01, _ = grid_targets_depth(v0, v1)
+    w10, _ = grid_targets_depth(v1, v0)
+    torch.manual_seed(0)
+    hc, wc = H // 8, W // 8
+    batch = {"mcts0": torch.rand(2, 8, H, W), "mcts1": torch.rand(2, 8, H, W),
+             "warp01": torch.from_numpy(np.stack([w01] * 2)).float(), "warp10": torch.from_numpy(np.stack([w10] * 2)).float(),
+             "labels0": torch.randint(0, 65, (2, hc, wc)), "labels1": torch.randint(0, 65, (2, hc, wc))}
+    desc = {}
+    module = KeypointModule(cfg).eval()  # eval: BatchNorm's running statistics, so every call sees the same network
+    with torch.no_grad():
+        for kind in ("hinge", "dual_softmax", "hinge+dual_softmax"):
+            module.cfg["loss"].update(descriptor=kind, dual_softmax_weight=0.25)
+            desc[kind] = float(module._losses(batch)["desc"])
+    assert desc["hinge"] > 0 and desc["dual_softmax"] > 0
+    assert desc["hinge+dual_softmax"] == pytest.approx(desc["hinge"] + 0.25 * desc["dual_softmax"], rel=1e-5)
+
+
 def test_dual_softmax_descriptor_loss_trains(tmp_path, sim_cache):
     """loss.descriptor=dual_softmax: a short run on depth supervision logs a finite descriptor loss;
     an unknown loss, or the dual softmax on pose-only supervision, is refused before training."""
