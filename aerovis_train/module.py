@@ -56,7 +56,7 @@ class KeypointModule(L.LightningModule):
             targets = batch["lines01"], batch["lines10"]
             fns = {"hinge": (descriptor_loss_epipolar, dict(hinge, pos_px=lc["epipolar_pos_px"], neg_px=lc["neg_px"]))}
         # the combination's softmax term is scaled by loss.dual_softmax_weight relative to the hinge
-        weights = {"hinge": 1.0, "dual_softmax": float(lc.get("dual_softmax_weight", 0.1)) if len(terms) > 1 else 1.0}
+        weights = {"hinge": 1.0, "dual_softmax": float(lc["dual_softmax_weight"]) if len(terms) > 1 else 1.0}
         desc = 0.0
         for term in terms:
             loss_fn, kw = fns[term]
