@@ -83,8 +83,48 @@ class KeypointModule(L.LightningModule):
         self.log("loss", losses["loss"], prog_bar=True, logger=False, batch_size=batch["mcts0"].shape[0])
         return losses["loss"]
 
+    # -- which parts learn: optim.train_only ---------------------------------------------------
+    def frozen_parts(self) -> list[str]:
+        """Top-level parts of the network (``encoder``, ``detector``, ``descriptor``) that this run keeps fixed.
+
+        ``optim.train_only: [descriptor]`` fine-tunes the descriptor head alone: the keypoints (encoder and
+        detector head, BatchNorm statistics included) stay bit-identical to the start weights, so a fine-tune
+        can change what the descriptors match without moving where the keypoints are.
+        """
+        only = self.cfg["optim"].get("train_only")
+        if only is None:
+            return []
+        only = [only] if isinstance(only, str) else list(only)
+        parts = [name for name, _ in self.model.named_children()]
+        unknown = [name for name in only if name not in parts]
+        if unknown or not only:
+            raise ValueError(f"optim.train_only must name some of {parts} (or be null: everything learns), got {only}")
+        return [name for name in parts if name not in only]
+
+    def model_trainable_parts(self) -> list[str] | None:
+        """The parts that learn when some are frozen (recorded in ``model.pt``), else None."""
+        frozen = self.frozen_parts()
+        return [name for name, _ in self.model.named_children() if name not in frozen] if frozen else None
+
+    def _freeze(self) -> None:
+        for name in self.frozen_parts():
+            part = getattr(self.model, name)
+            part.requires_grad_(False)
+            # eval mode: BatchNorm neither updates its running statistics nor normalises by the batch's
+            part.eval()
+
+    def on_fit_start(self):
+        self._freeze()
+
+    def on_train_batch_start(self, batch, batch_idx):
+        # Lightning restores each submodule's mode after a validation; a callback or user code calling
+        # .train() on the module would not, and BatchNorm in train mode would move the keypoints
+        self._freeze()
+
     def configure_optimizers(self):
-        return torch.optim.Adam(self.model.parameters(), lr=self.cfg["optim"]["lr"])
+        frozen = set(self.frozen_parts())
+        params = [p for name, part in self.model.named_children() if name not in frozen for p in part.parameters()]
+        return torch.optim.Adam(params, lr=self.cfg["optim"]["lr"])
 
     # -- validation: the relative-pose protocol on held-out sequences ------------------------
     def validation_step(self, path, batch_idx):

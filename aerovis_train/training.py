@@ -277,6 +277,10 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
     (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
 
     module = KeypointModule(OmegaConf.to_container(cfg, resolve=True))
+    try:
+        module.frozen_parts()
+    except ValueError as exc:  # a part the network does not have: refused before any data is generated
+        raise DataError(None, str(exc)) from None
     train_paths, val_paths = sequences_from_config(cfg.data)
     dataset = make_dataset(cfg, train_paths, module.model.size_multiple)
     workers = loader_workers(cfg)
@@ -333,7 +337,8 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
         slim = save_slim(module.cfg["model"], lightning_model_state(ckpt), slim_path,
                          meta={"val_auc10": selected_auc, "seed": int(cfg.seed), "data": OmegaConf.to_container(cfg.data, resolve=True),
                                "global_step": int(ckpt.get("global_step", 0)), "selection": selection,
-                               "descriptor_loss": str(cfg.loss.descriptor), "init_weights": init_meta})
+                               "descriptor_loss": str(cfg.loss.descriptor), "init_weights": init_meta,
+                               "train_only": module.model_trainable_parts()})
     summary = {
         "model": cfg.model.name,
         "best_val_auc10": best_auc,

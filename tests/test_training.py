@@ -374,6 +374,31 @@ def test_fine_tuning_starts_from_the_given_weights(tmp_path, sim_cache):
         init_from_weights(build_model(plus), "superlite", plus)
 
 
+def test_descriptor_only_fine_tune_keeps_the_keypoints(tmp_path, sim_cache):
+    """optim.train_only=[descriptor]: after steps on both sides of a validation, the encoder and detector
+    head, BatchNorm statistics included, are bit-identical to the start weights, so the keypoints are; the
+    descriptor head has moved. An unknown part is refused."""
+    import torch
+
+    from aerovis_train.checkpoints import load_model
+
+    run = tmp_path / "run"
+    # 4 samples of 2: two steps an epoch, a validation after each, so step 3 follows a validation
+    res = _train(run, "init_weights=superlite", "optim.train_only=[descriptor]", "optim.lr=0.01", "data.crop=[40,56]",
+                 "trainer.max_steps=3", "weights=last", cache=sim_cache)
+    assert res.returncode == 0, res.stderr[-3000:]
+    ship, _, _ = load_model("superlite")
+    tuned, _, _ = load_model(run / "model.pt")
+    tuned_state = tuned.state_dict()
+    moved = [k for k, v in ship.state_dict().items() if not torch.equal(v, tuned_state[k])]
+    assert moved and all(k.startswith("descriptor.") for k in moved), moved
+    assert any(k.startswith("descriptor.out.") for k in moved)  # the learning part did learn (lr 0.01, 3 steps)
+    meta = torch.load(run / "model.pt", map_location="cpu", weights_only=False)["meta"]
+    assert meta["train_only"] == ["descriptor"]
+    bad = _train(tmp_path / "bad", "optim.train_only=[neck]", cache=sim_cache)
+    assert bad.returncode == 2 and "optim.train_only must name some of ['encoder', 'detector', 'descriptor']" in bad.stderr
+
+
 def test_bad_training_input_is_explained(tmp_path):
     """train.py reports bad input as one line and exit status 2, no traceback (one run shows the
     path; the other refusals are DataErrors checked in-process, here and in the tests above)."""
