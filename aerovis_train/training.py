@@ -278,9 +278,12 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
 
     module = KeypointModule(OmegaConf.to_container(cfg, resolve=True))
     try:
-        module.frozen_parts()
+        frozen = module.frozen_parts()
     except ValueError as exc:  # a part the network does not have: refused before any data is generated
         raise DataError(None, str(exc)) from None
+    if frozen and not cfg.get("init_weights") and not (ckpt_dir / "last.ckpt").exists():
+        print(f"train.py: note: optim.train_only without init_weights: {', '.join(frozen)} keep their "
+              "random initialisation", file=sys.stderr)
     train_paths, val_paths = sequences_from_config(cfg.data)
     dataset = make_dataset(cfg, train_paths, module.model.size_multiple)
     workers = loader_workers(cfg)

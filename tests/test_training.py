@@ -397,6 +397,9 @@ def test_descriptor_only_fine_tune_keeps_the_keypoints(tmp_path, sim_cache):
     assert meta["train_only"] == ["descriptor"]
     bad = _train(tmp_path / "bad", "optim.train_only=[neck]", cache=sim_cache)
     assert bad.returncode == 2 and "optim.train_only must name some of ['encoder', 'detector', 'descriptor']" in bad.stderr
+    # without start weights the frozen parts would stay random: allowed, and said
+    scratch = _train(tmp_path / "scratch", "optim.train_only=[descriptor]", "data.crop=[40,56]", "trainer.max_steps=1", cache=sim_cache)
+    assert scratch.returncode == 0 and "encoder, detector keep their random initialisation" in scratch.stderr
 
 
 def test_bad_training_input_is_explained(tmp_path):
