@@ -32,6 +32,26 @@ from .correspondences import cell_centres
 DESCRIPTOR_LOSSES = ("hinge", "dual_softmax", "hinge+dual_softmax")
 
 
+def descriptor_loss_terms(kind: str, supervision: str) -> list[str]:
+    """The terms of ``loss.descriptor`` (``"hinge+dual_softmax"`` -> ``["hinge", "dual_softmax"]``), checked.
+
+    Args:
+        kind: the ``loss.descriptor`` setting.
+        supervision: ``"depth"`` (one true cell per cell) or ``"epipolar"`` (poses only: a line of candidates).
+
+    Raises:
+        ValueError: an unknown setting, or the dual softmax without depth (its cross-entropy needs the one
+            true cell that only depth supervision gives).
+    """
+    if kind not in DESCRIPTOR_LOSSES:
+        raise ValueError(f"loss.descriptor={kind!r}: expected one of {', '.join(DESCRIPTOR_LOSSES)}")
+    terms = kind.split("+")
+    if "dual_softmax" in terms and supervision != "depth":
+        raise ValueError(f"loss.descriptor={kind} needs data.supervision=depth (this data has {supervision!r}: poses "
+                         "only give epipolar lines, not one true cell); use loss.descriptor=hinge")
+    return terms
+
+
 def detector_loss(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
     """Cross-entropy of (B, 65, Hc, Wc) logits against (B, Hc, Wc) int64 labels (-100 = ignore)."""
     return F.cross_entropy(logits, labels, ignore_index=-100)

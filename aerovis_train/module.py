@@ -7,7 +7,7 @@ from lightning.pytorch.utilities import rank_zero_warn
 import torch
 
 from .eval.learned import TorchDetector
-from .losses import DESCRIPTOR_LOSSES, descriptor_loss_depth, descriptor_loss_dual_softmax, descriptor_loss_epipolar, detector_loss
+from .losses import descriptor_loss_depth, descriptor_loss_dual_softmax, descriptor_loss_epipolar, descriptor_loss_terms, detector_loss
 from .models import build_model
 
 
@@ -39,19 +39,14 @@ class KeypointModule(L.LightningModule):
         out = self.model(torch.cat([batch["mcts0"], batch["mcts1"]]))
         logits0, logits1 = out["logits"][:b], out["logits"][b:]
         desc0, desc1 = out["descriptors"][:b], out["descriptors"][b:]
-        kind = lc.get("descriptor", "hinge")
-        if kind not in DESCRIPTOR_LOSSES:
-            raise ValueError(f"loss.descriptor must be one of {', '.join(DESCRIPTOR_LOSSES)}, not {kind!r}")
-        terms = kind.split("+")
+        # a batch with depth targets carries warps; one supervised by poses only carries epipolar lines
+        terms = descriptor_loss_terms(lc.get("descriptor", "hinge"), "depth" if "warp01" in batch else "epipolar")
         hinge = dict(pos_margin=lc["pos_margin"], neg_margin=lc["neg_margin"], pos_weight=lc["pos_weight"])
         if "warp01" in batch:
             targets = batch["warp01"], batch["warp10"]
             fns = {"hinge": (descriptor_loss_depth, dict(hinge, pos_px=lc["pos_px"], neg_px=lc["neg_px"])),
                    "dual_softmax": (descriptor_loss_dual_softmax,
                                     dict(pos_px=lc["pos_px"], neg_px=lc["neg_px"], temperature=lc["temperature"]))}
-        elif "dual_softmax" in terms:
-            raise ValueError(f"loss.descriptor={kind} needs depth supervision (data without depth gives epipolar "
-                             "targets): use loss.descriptor=hinge")
         else:
             targets = batch["lines01"], batch["lines10"]
             fns = {"hinge": (descriptor_loss_epipolar, dict(hinge, pos_px=lc["epipolar_pos_px"], neg_px=lc["neg_px"]))}

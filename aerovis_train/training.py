@@ -31,7 +31,7 @@ from aerovis_slam.errors import DataError
 from .checkpoints import AtomicCheckpointIO, lightning_model_state, save_slim
 from .data import EventPairDataset, make_loader, mcts_spec_from_config
 from .models import count_parameters
-from .losses import DESCRIPTOR_LOSSES
+from .losses import descriptor_loss_terms
 from .module import KeypointModule
 
 #: what ``model.pt`` (and ``metrics.json``) hold: the highest validation AUC@10, or the final step
@@ -263,12 +263,10 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
     if selection not in WEIGHT_SELECTIONS:
         raise DataError(None, f"weights={selection!r}: expected one of {', '.join(WEIGHT_SELECTIONS)} "
                               "(best: highest validation AUC@10; last: the final step)")
-    descriptor_loss = str(cfg.loss.get("descriptor", "hinge"))
-    if descriptor_loss not in DESCRIPTOR_LOSSES:
-        raise DataError(None, f"loss.descriptor={descriptor_loss!r}: expected one of {', '.join(DESCRIPTOR_LOSSES)}")
-    if "dual_softmax" in descriptor_loss.split("+") and str(cfg.data.get("supervision", "depth")) != "depth":
-        raise DataError(None, f"loss.descriptor={descriptor_loss} needs data.supervision=depth (this data has "
-                              f"{cfg.data.supervision!r}: poses only give epipolar lines, not one true cell); use loss.descriptor=hinge")
+    try:
+        descriptor_loss_terms(str(cfg.loss.get("descriptor", "hinge")), str(cfg.data.get("supervision", "depth")))
+    except ValueError as exc:  # refused before any data is generated
+        raise DataError(None, str(exc)) from None
     L.seed_everything(int(cfg.seed), workers=True)
     torch.set_num_threads(int(cfg.get("torch_threads") or torch.get_num_threads()))
     run_dir = Path(cfg.run_dir)

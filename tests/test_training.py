@@ -296,6 +296,20 @@ def test_weights_last_keeps_the_final_step(tmp_path, sim_cache):
     assert bad.returncode == 2 and "weights='newest': expected one of best, last" in bad.stderr and "Traceback" not in bad.stderr
 
 
+def test_descriptor_loss_terms_are_parsed_and_checked_in_one_place():
+    """loss.descriptor is split into its terms by one function, which train() (before a run) and the module
+    (on each batch) both call: unknown settings and the dual softmax without depth are refused by it."""
+    from aerovis_train.losses import descriptor_loss_terms
+
+    assert descriptor_loss_terms("hinge", "epipolar") == ["hinge"]
+    assert descriptor_loss_terms("hinge+dual_softmax", "depth") == ["hinge", "dual_softmax"]
+    with pytest.raises(ValueError, match="expected one of hinge, dual_softmax, hinge\\+dual_softmax"):
+        descriptor_loss_terms("triplet", "depth")
+    for kind in ("dual_softmax", "hinge+dual_softmax"):
+        with pytest.raises(ValueError, match="needs data.supervision=depth"):
+            descriptor_loss_terms(kind, "epipolar")
+
+
 def test_combined_descriptor_loss_is_the_weighted_sum():
     """loss.descriptor=hinge+dual_softmax: the descriptor term is hinge + dual_softmax_weight * dual
     softmax, each as its own setting computes it on the same batch, with depth targets of a known wall."""
