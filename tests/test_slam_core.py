@@ -1335,6 +1335,34 @@ def test_configs_load_and_reject_unknown_keys(tmp_path):
         load_config("nonexistent")
 
 
+def test_config_loop_section_reaches_the_loop_closer(tmp_path):
+    """``loop:`` in a SLAM config overrides the loop closer's settings (what ``run`` and ``bench`` build
+    through ``make_loop_closer``), whole-number settings stay whole, and a misspelt key, a fraction
+    where a count belongs, a negative value or an unsupported pose-graph size is refused naming it."""
+    from aerovis_slam.slam.bench import make_loop_closer
+    from aerovis_slam.slam.loop import DEFAULT_CONFIG
+
+    assert load_config("accurate").loop == {} and load_config("realtime").loop == {}
+    f = tmp_path / "strict_loops.yaml"
+    f.write_text("loop:\n  min_inliers: 15.0\n  drift_fraction: 0.02\n")
+    cfg = load_config(f)
+    assert cfg.loop == {"min_inliers": 15, "drift_fraction": 0.02} and type(cfg.loop["min_inliers"]) is int
+    with make_loop_closer(object(), cfg) as closer:
+        assert closer.config["min_inliers"] == 15 and closer.config["drift_fraction"] == 0.02
+        assert closer.config["ransac_px"] == DEFAULT_CONFIG["ransac_px"]
+    with make_loop_closer(object(), load_config("accurate")) as closer:
+        assert closer.config == DEFAULT_CONFIG
+    for bad, match in (("min_inlier: 12", "loop.min_inlier'"), ("min_inliers: 12.5", "loop.min_inliers must be a whole"),
+                       ("drift_fraction: -0.1", "loop.drift_fraction must be >= 0"), ("min_score: high", "loop.min_score must be a number"),
+                       ("pose_graph_dof: 5", "loop.pose_graph_dof")):
+        f.write_text(f"loop:\n  {bad}\n")
+        with pytest.raises(DataError, match=match):
+            load_config(f)
+    f.write_text("loop: [10]\n")
+    with pytest.raises(DataError, match="loop must be a mapping"):
+        load_config(f)
+
+
 def test_event_support_counts_the_window_and_drops_lone_events(tmp_path, tiny_preset):
     """``event_support``: pixels with an event of either polarity in one window of the MCTS, over the
     5x5 around a keypoint. An edge (a line of fresh events) has five in its window, a fresh lone

@@ -390,6 +390,9 @@ class SlamConfig:
             took 66 instead of 33 ms after 30 ms of products, and an async drone8_lit run
             processed 7.5 poses/s with OpenBLAS's 2 threads and 11.6 with 1 (docs/slam.md).
         input, detector, matching, refinement, ransac, keyframes, backend, init, tracking: the sections above.
+        loop: overrides of the loop closer's settings (:data:`aerovis_slam.slam.loop.DEFAULT_CONFIG`,
+            e.g. ``min_inliers``, ``drift_fraction``); empty: its defaults. A plain mapping rather than a
+            dataclass so the loop closer stays the one place that names and documents them.
     """
 
     name: str = "default"
@@ -406,6 +409,7 @@ class SlamConfig:
     backend: BackendConfig = field(default_factory=BackendConfig)
     init: InitConfig = field(default_factory=InitConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    loop: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         """Plain nested dict (for metrics.json and reproducibility)."""
@@ -504,6 +508,31 @@ def _validate(cfg: SlamConfig, path) -> None:
                               f"got {cfg.detector.observation_lag_events_per_px}")
     if cfg.detector.classical not in DETECTORS:
         raise DataError(path, f"detector.classical must be one of {sorted(DETECTORS)}, got {cfg.detector.classical!r}")
+    _validate_loop(cfg.loop, path)
+
+
+def _validate_loop(section: Any, path) -> None:
+    """The ``loop`` section: a mapping of known loop-closer settings, each a number of its default's
+    type (whole numbers where the default is one)."""
+    from .loop import DEFAULT_CONFIG
+
+    if not isinstance(section, dict):
+        raise DataError(path, f"loop must be a mapping of loop-closure settings, got {type(section).__name__}")
+    unknown = sorted(str(k) for k in section if k not in DEFAULT_CONFIG)
+    if unknown:
+        raise DataError(path, f"unknown key(s) {['loop.' + k for k in unknown]}; known keys of loop: {sorted(DEFAULT_CONFIG)}")
+    for key, value in section.items():
+        default = DEFAULT_CONFIG[key]
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise DataError(path, f"loop.{key} must be a number, got {value!r}")
+        if isinstance(default, int) and not float(value).is_integer():
+            raise DataError(path, f"loop.{key} must be a whole number, got {value!r}")
+        if isinstance(default, int):
+            section[key] = int(value)
+        if value < 0:
+            raise DataError(path, f"loop.{key} must be >= 0, got {value!r}")
+    if "pose_graph_dof" in section and section["pose_graph_dof"] not in (4, 6):
+        raise DataError(path, f"loop.pose_graph_dof must be 4 (position + yaw) or 6, got {section['pose_graph_dof']!r}")
 
 
 def config_path(name_or_path: str | os.PathLike) -> Path:
