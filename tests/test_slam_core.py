@@ -1459,6 +1459,34 @@ def test_track_refiner_aligns_observations_to_their_anchor():
     assert len(ref.images) == 3 and {a[0] for a in ref.anchors.values()} <= set(ref.images)
 
 
+def test_alignment_images_average_the_shortest_windows_of_both_polarities(tmp_path):
+    """``refinement.windows``: the refinement's image is the mean of the ``windows`` shortest windows
+    of each polarity (channel = p * K + k); None or K and more: every channel, as the default run
+    computes it. A value below 1 is refused, in the settings file by name."""
+    from aerovis_slam.slam.refine import alignment_images
+
+    K, H, W = 4, 3, 5
+    surfaces = np.zeros((2, 2 * K, H, W), np.float32)
+    for c in range(2 * K):
+        surfaces[:, c] = c + 1  # channel c holds the value c + 1 (both cameras)
+    surfaces[1] *= 10
+    two = alignment_images(surfaces, 2)  # OFF k = 0, 1 (1, 2) and ON k = 0, 1 (5, 6)
+    assert two.shape == (2, H, W) and two.dtype == np.float32
+    np.testing.assert_array_equal(two[0], np.full((H, W), (1 + 2 + 5 + 6) / 4))
+    np.testing.assert_array_equal(two[1], np.full((H, W), 10 * (1 + 2 + 5 + 6) / 4))
+    np.testing.assert_array_equal(alignment_images(surfaces, 1)[0], np.full((H, W), (1 + 5) / 2))
+    for every in (None, K, K + 3):
+        np.testing.assert_array_equal(alignment_images(surfaces, every), surfaces.mean(axis=1))
+    with pytest.raises(ValueError, match="windows must be >= 1"):
+        alignment_images(surfaces, 0)
+    f = tmp_path / "short.yaml"
+    f.write_text("refinement:\n  windows: 3\n")
+    assert load_config(f).refinement.windows == 3 and load_config("accurate").refinement.windows is None
+    f.write_text("refinement:\n  windows: 0\n")
+    with pytest.raises(DataError, match="refinement.windows"):
+        load_config(f)
+
+
 def test_track_refiner_keeps_the_detection_where_the_anchor_is_not_found():
     """Where the current image holds no structure (no events around the keypoints: no gradient, so
     the tracker's 2x2 system is singular), the observations keep their detected positions; anchors

@@ -190,6 +190,9 @@ class RefinementConfig:
         max_shift_px: an alignment farther than this from the detection is rejected.
         max_fb_px: an alignment whose way back misses the anchor by more than this is rejected.
         max_anchor_age_s: anchors older than this are replaced by the current observation.
+        windows: the alignment image is the mean of this many of the MCTS's shortest windows, both
+            polarities (None: every channel). Short windows hold short trails, whose shape depends
+            less on the direction and speed of the motion.
     """
 
     enabled: bool = True
@@ -197,6 +200,7 @@ class RefinementConfig:
     max_shift_px: float = 6.0
     max_fb_px: float = 2.0
     max_anchor_age_s: float = 5.0
+    windows: int | None = None
 
 
 @dataclass
@@ -473,6 +477,8 @@ def _validate(cfg: SlamConfig, path) -> None:
     for key in ("max_shift_px", "max_fb_px", "max_anchor_age_s"):
         if not getattr(rc, key) > 0:
             raise DataError(path, f"refinement.{key} must be positive, got {getattr(rc, key)}")
+    if rc.windows is not None and not (isinstance(rc.windows, int) and rc.windows >= 1):
+        raise DataError(path, f"refinement.windows must be a whole number >= 1 (the shortest MCTS windows) or null (all), got {rc.windows!r}")
     if cfg.backend.window_keyframes < 2:
         raise DataError(path, f"backend.window_keyframes must be at least 2, got {cfg.backend.window_keyframes}")
     if cfg.input.max_warm_up_s is not None and not cfg.input.max_warm_up_s >= 0:

@@ -54,7 +54,7 @@ from .frontend import (KeyframeSelector, LandmarkMap, edge_shapes, match_to_map,
 from .imu import (GRAVITY, ImuStream, align_visual_inertial, gravity_from_velocity_change, gravity_rotation_from_acc,
                   new_preintegration, preintegration_params)
 from .ransac import bearings, pnp_ransac, position_given_rotation, relative_pose_ransac, reprojection_error, rotation_ransac
-from .refine import TrackRefiner
+from .refine import TrackRefiner, alignment_images
 from .stereo import match_stereo, triangulate, uses_row_search
 
 
@@ -352,7 +352,8 @@ class StereoInertialOdometry:
             tr = time.perf_counter()
             # the unblurred channel means: the tracker's window does the smoothing (measured: blurred
             # images refine fewer observations, and no better)
-            self.refiner.begin_frame(tau, means)
+            windows = cfg.refinement.windows
+            self.refiner.begin_frame(tau, means if windows is None else alignment_images(batch[:2], windows))
             obs = self.refiner.refine(obs)
             timings["refine"] = (time.perf_counter() - tr) * 1e3
         for c in (0, 1):  # observation shapes at the (refined) positions

@@ -23,7 +23,8 @@ the scene point of the first sighting drops from 1.25-1.82 px to 0.41-1.17 px, a
 means by 19-48 % on six sequences of seven (shake_rapid, whose shaking turns the surfaces' trails
 around within a track, gets worse).
 
-Images are the frame's channel means of the MCTS (values in [0, 1]), as 8-bit for OpenCV's tracker.
+Images are the frame's channel means of the MCTS (values in [0, 1]), as 8-bit for OpenCV's tracker
+(:func:`alignment_images`; ``refinement.windows`` keeps only the shortest windows).
 """
 
 from __future__ import annotations
@@ -56,6 +57,27 @@ class RefinementStats:
 def to_uint8(image: np.ndarray) -> np.ndarray:
     """A time-surface image with values in [0, 1] as contiguous uint8 (OpenCV's tracker takes 8-bit)."""
     return np.ascontiguousarray(np.clip(np.rint(np.asarray(image, np.float32) * 255.0), 0, 255).astype(np.uint8))
+
+
+def alignment_images(surfaces: np.ndarray, windows: int | None = None) -> np.ndarray:
+    """The images the refinement aligns: each camera's mean over MCTS channels.
+
+    Args:
+        surfaces: (cameras, C, H, W) time surfaces, polarity-major (``channel = p * K + k``, K = C / 2,
+            window ``k = 0`` the shortest), values in [0, 1].
+        windows: average only the ``windows`` shortest windows of each polarity (None, or K or more:
+            every channel).
+    Returns:
+        (cameras, H, W) float32 channel means.
+    """
+    surfaces = np.asarray(surfaces)
+    K = surfaces.shape[1] // 2
+    if windows is None or windows >= K:
+        return surfaces.mean(axis=1, dtype=np.float32)
+    if windows < 1:
+        raise ValueError(f"windows must be >= 1 (the shortest MCTS windows) or None, got {windows}")
+    picked = np.concatenate([surfaces[:, :windows], surfaces[:, K:K + windows]], axis=1)
+    return picked.mean(axis=1, dtype=np.float32)
 
 
 class TrackRefiner:
