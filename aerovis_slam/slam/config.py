@@ -514,31 +514,17 @@ def _validate(cfg: SlamConfig, path) -> None:
                               f"got {cfg.detector.observation_lag_events_per_px}")
     if cfg.detector.classical not in DETECTORS:
         raise DataError(path, f"detector.classical must be one of {sorted(DETECTORS)}, got {cfg.detector.classical!r}")
-    _validate_loop(cfg.loop, path)
+    _validate_loop(cfg, path)
 
 
-def _validate_loop(section: Any, path) -> None:
-    """The ``loop`` section: a mapping of known loop-closer settings, each a number of its default's
-    type (whole numbers where the default is one)."""
-    from .loop import DEFAULT_CONFIG
+def _validate_loop(cfg: SlamConfig, path) -> None:
+    """The ``loop`` section, checked by the loop closer's own check (and normalised: whole numbers as int)."""
+    from .loop import check_loop_overrides
 
-    if not isinstance(section, dict):
-        raise DataError(path, f"loop must be a mapping of loop-closure settings, got {type(section).__name__}")
-    unknown = sorted(str(k) for k in section if k not in DEFAULT_CONFIG)
-    if unknown:
-        raise DataError(path, f"unknown key(s) {['loop.' + k for k in unknown]}; known keys of loop: {sorted(DEFAULT_CONFIG)}")
-    for key, value in section.items():
-        default = DEFAULT_CONFIG[key]
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise DataError(path, f"loop.{key} must be a number, got {value!r}")
-        if isinstance(default, int) and not float(value).is_integer():
-            raise DataError(path, f"loop.{key} must be a whole number, got {value!r}")
-        if isinstance(default, int):
-            section[key] = int(value)
-        if value < 0:
-            raise DataError(path, f"loop.{key} must be >= 0, got {value!r}")
-    if "pose_graph_dof" in section and section["pose_graph_dof"] not in (4, 6):
-        raise DataError(path, f"loop.pose_graph_dof must be 4 (position + yaw) or 6, got {section['pose_graph_dof']!r}")
+    try:
+        cfg.loop = check_loop_overrides(cfg.loop)
+    except ValueError as exc:
+        raise DataError(path, str(exc)) from None
 
 
 def config_path(name_or_path: str | os.PathLike) -> Path:

@@ -127,6 +127,38 @@ DEFAULT_CONFIG: dict = {
 }
 
 
+def check_loop_overrides(overrides: dict | None) -> dict:
+    """Overrides of :data:`DEFAULT_CONFIG` (a SLAM settings file's ``loop:`` section), checked: known
+    keys, numbers (whole, and returned as int, where the default is), none negative, ``pose_graph_dof``
+    4 or 6. The one check for :class:`LoopCloser` and the settings loader.
+
+    Returns:
+        A checked copy of ``overrides`` (empty for None).
+    Raises:
+        ValueError: naming the setting as ``loop.<key>``.
+    """
+    if overrides is None:
+        return {}
+    if not isinstance(overrides, dict):
+        raise ValueError(f"loop must be a mapping of loop-closure settings, got {type(overrides).__name__}")
+    unknown = sorted(str(k) for k in overrides if k not in DEFAULT_CONFIG)
+    if unknown:
+        raise ValueError(f"unknown key(s) {['loop.' + k for k in unknown]}; known keys of loop: {sorted(DEFAULT_CONFIG)}")
+    checked = {}
+    for key, value in overrides.items():
+        whole = isinstance(DEFAULT_CONFIG[key], int)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"loop.{key} must be a number, got {value!r}")
+        if whole and not float(value).is_integer():
+            raise ValueError(f"loop.{key} must be a whole number, got {value!r}")
+        if value < 0:
+            raise ValueError(f"loop.{key} must be >= 0, got {value!r}")
+        checked[key] = int(value) if whole else value
+    if checked.get("pose_graph_dof", 4) not in (4, 6):
+        raise ValueError(f"loop.pose_graph_dof must be 4 (position + yaw) or 6, got {checked['pose_graph_dof']!r}")
+    return checked
+
+
 # -- descriptors and vocabularies -----------------------------------------------------------------
 def descriptor_vectors(descriptors: np.ndarray) -> np.ndarray:
     """Descriptors as float32 vectors for k-means and VLAD: (N, D) -> (N, D').
@@ -406,12 +438,7 @@ class LoopCloser:
     """
 
     def __init__(self, config: dict | None = None, vocabulary: np.ndarray | None = None):
-        unknown = sorted(set(config or {}) - set(DEFAULT_CONFIG))
-        if unknown:
-            raise ValueError(f"unknown loop-closure option(s) {unknown}; known: {sorted(DEFAULT_CONFIG)}")
-        self.config = dict(DEFAULT_CONFIG, **(config or {}))
-        if self.config["pose_graph_dof"] not in (4, 6):
-            raise ValueError(f"loop-closure option pose_graph_dof must be 4 (position + yaw) or 6, got {self.config['pose_graph_dof']!r}")
+        self.config = dict(DEFAULT_CONFIG, **check_loop_overrides(config))
         self.vocabulary = None if vocabulary is None else np.asarray(vocabulary, np.float32)
         self._keyframes: dict[int, _Keyframe] = {}
         self._order: list[int] = []
