@@ -33,7 +33,7 @@ from aerovis_slam.io.sequence import Sequence
 from aerovis_slam.mcts import MCTS_DT_WINDOWS_MS, events_per_window, mcts_from_events
 
 from .correspondences import ViewGeometry, epipolar_lines, grid_targets_depth
-from .labels import CornerLabeller, Labeller, cell_labels, cross_view_consistent
+from .labels import CornerLabeller, Labeller, cell_labels, cross_view_consistent, soft_cell_labels
 
 
 @dataclass
@@ -122,6 +122,9 @@ class EventPairDataset(Dataset):
         roll_deg: the second view of each pair is turned about its optical axis by an angle drawn
             uniformly in +-``roll_deg`` degrees (image, frame, depth and pose together: exact geometry;
             0: off), so that descriptors learn in-plane rotations larger than the pairs' own motion.
+        soft_labels: detector targets as 65-class distributions that keep the labels' sub-pixel
+            positions (:func:`~aerovis_train.labels.soft_cell_labels`, float (65, Hc, Wc)) instead of
+            the class of each label's nearest pixel (int64 (Hc, Wc)); for a sub-pixel labeller.
     """
 
     def __init__(
@@ -139,6 +142,7 @@ class EventPairDataset(Dataset):
         min_history_ms: float = 50.0,
         event_cache: str | os.PathLike | None = None,
         roll_deg: float = 0.0,
+        soft_labels: bool = False,
     ):
         if supervision not in ("depth", "epipolar"):
             raise ValueError(f"supervision must be 'depth' or 'epipolar', not {supervision!r}")
@@ -148,6 +152,7 @@ class EventPairDataset(Dataset):
         self.stereo_fraction, self.supervision, self.seed = stereo_fraction, supervision, seed
         self.roll_deg = float(roll_deg)
         self.labeller = labeller or CornerLabeller()
+        self.soft_labels = bool(soft_labels)
         self.infos = [SequenceInfo(p, need_depth=supervision == "depth") for p in paths]
         self.frames = []  # (sequence index, camera, frame index)
         for si, info in enumerate(self.infos):
@@ -234,11 +239,12 @@ class EventPairDataset(Dataset):
         ch, cw = self.crop or (h - h % 8, w - w % 8)
         y0, x0 = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
         g0c, g1c = _crop_view(g0, x0, y0, cw, ch), _crop_view(g1, x0, y0, cw, ch)
+        targets = soft_cell_labels if self.soft_labels else cell_labels
         sample = {
             "mcts0": torch.from_numpy(np.ascontiguousarray(mcts0[:, y0 : y0 + ch, x0 : x0 + cw])),
             "mcts1": torch.from_numpy(np.ascontiguousarray(mcts1[:, y0 : y0 + ch, x0 : x0 + cw])),
-            "labels0": torch.from_numpy(cell_labels(kp0 - [x0, y0], ch, cw, rng)),
-            "labels1": torch.from_numpy(cell_labels(kp1 - [x0, y0], ch, cw, rng)),
+            "labels0": torch.from_numpy(targets(kp0 - [x0, y0], ch, cw, rng)),
+            "labels1": torch.from_numpy(targets(kp1 - [x0, y0], ch, cw, rng)),
         }
         if self.supervision == "depth":
             sample["warp01"] = torch.from_numpy(grid_targets_depth(g0c, g1c)[0])

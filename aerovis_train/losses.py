@@ -53,7 +53,10 @@ def descriptor_loss_terms(kind: str, supervision: str) -> list[str]:
 
 
 def detector_loss(logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
-    """Cross-entropy of (B, 65, Hc, Wc) logits against (B, Hc, Wc) int64 labels (-100 = ignore)."""
+    """Cross-entropy of (B, 65, Hc, Wc) logits against (B, Hc, Wc) int64 labels (-100 = ignore), or
+    against (B, 65, Hc, Wc) float target distributions (sub-pixel labels, :func:`~aerovis_train.labels.soft_cell_labels`)."""
+    if labels.is_floating_point():
+        return F.cross_entropy(logits, labels)
     return F.cross_entropy(logits, labels, ignore_index=-100)
 
 

@@ -30,6 +30,7 @@ from aerovis_slam.errors import DataError
 
 from .checkpoints import AtomicCheckpointIO, lightning_model_state, save_slim
 from .data import EventPairDataset, make_loader, mcts_spec_from_config
+from .labels import CornerLabeller
 from .models import count_parameters
 from .losses import descriptor_loss_terms
 from .module import KeypointModule
@@ -156,11 +157,16 @@ def make_dataset(cfg: DictConfig, paths: list[Path], size_multiple: int, samples
     """The training pairs that ``cfg.data`` describes, for a model whose input sides must be
     multiples of ``size_multiple`` (the crop fitted by :func:`fit_crop`)."""
     crop = fit_crop(cfg, size_multiple)
+    # data.label_subpixel: corners refined to sub-pixel positions and trained as soft cell targets
+    subpixel = int(cfg.data.get("label_subpixel", 0) or 0)
+    if subpixel < 0:
+        raise ValueError(f"data.label_subpixel must be >= 0 (cornerSubPix half-window in px; 0: integer labels), got {subpixel}")
     return EventPairDataset(
         paths, mcts_spec_from_config(cfg.model.mcts), crop=crop, max_gap_frames=int(cfg.data.max_gap_frames),
         stereo_fraction=float(cfg.data.stereo_fraction), supervision=str(cfg.data.supervision),
         samples_per_epoch=samples_per_epoch or int(cfg.data.samples_per_epoch), seed=int(cfg.seed),
-        event_cache=event_cache_dir(cfg), roll_deg=float(cfg.data.get("roll_deg", 0.0)))
+        event_cache=event_cache_dir(cfg), roll_deg=float(cfg.data.get("roll_deg", 0.0)),
+        labeller=CornerLabeller(subpixel_window=subpixel), soft_labels=subpixel > 0)
 
 
 def gpu_processes(trainer_cfg) -> int:

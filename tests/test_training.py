@@ -22,7 +22,7 @@ from aerovis_train.correspondences import (  # noqa: E402
     keypoint_matches_depth,
     keypoint_matches_epipolar,
 )
-from aerovis_train.labels import cell_labels, cross_view_consistent  # noqa: E402
+from aerovis_train.labels import CornerLabeller, cell_labels, cross_view_consistent, soft_cell_labels  # noqa: E402
 from aerovis_train.losses import descriptor_loss_depth, descriptor_loss_dual_softmax, descriptor_loss_epipolar, detector_loss  # noqa: E402
 
 from conftest import REPO_ROOT  # noqa: E402
@@ -78,11 +78,72 @@ def test_epipolar_matches_and_labels():
     assert keep.tolist() == [True, False]
 
 
+def test_soft_cell_labels_keep_the_subpixel_position():
+    """The bilinear target's centroid is the label's position; across a cell border the mass stays in
+    the label's own cell (renormalised); one label per cell, the rest is dustbin; rows are distributions."""
+    rng = np.random.default_rng(0)
+    xy = np.array([[9.25, 2.75], [40.0, 17.0], [15.4, 30.2], [-3.0, 5.0]])  # the last is outside: dropped
+    t = soft_cell_labels(xy, H, W, rng)
+    assert t.shape == (65, H // 8, W // 8) and t.dtype == np.float32
+    np.testing.assert_allclose(t.sum(0), 1.0, atol=1e-6)
+    ys, xs = np.mgrid[0:8, 0:8]
+
+    def centroid(cy, cx):
+        p = t[:64, cy, cx].reshape(8, 8) / t[:64, cy, cx].sum()
+        return 8 * cx + (p * xs).sum(), 8 * cy + (p * ys).sum()
+
+    # inside a cell: the four weights (0.75*0.25, 0.25*0.25, 0.75*0.75, 0.25*0.75) put the centroid on the label
+    np.testing.assert_allclose(centroid(0, 1), (9.25, 2.75), atol=1e-6)
+    assert t[2 * 8 + 1, 0, 1] == pytest.approx(0.75 * 0.25) and t[3 * 8 + 2, 0, 1] == pytest.approx(0.25 * 0.75)
+    # an integer label is the one-hot class that cell_labels gives
+    assert t[1 * 8 + 0, 2, 5] == pytest.approx(1.0) and t[64, 2, 5] == 0.0
+    # x = 15.4 rounds to pixel 15 (cell 1); pixel 16 is in cell 2, so all of x's mass stays on column 15
+    np.testing.assert_allclose(centroid(3, 1), (15.0, 30.2), atol=1e-6)
+    assert t[:, :, 2].sum() == pytest.approx(H // 8) and t[64, :, 2].min() == 1.0  # nothing leaked into cell column 2
+    assert (t[64] == 1.0).sum() == (H // 8) * (W // 8) - 3
+    # one label per cell: two in the same cell leave one distribution, not a mixture
+    t2 = soft_cell_labels(np.array([[1.0, 1.0], [5.5, 5.0]]), H, W, np.random.default_rng(1))
+    assert sorted(np.round(t2[:64, 0, 0][t2[:64, 0, 0] > 0], 6).tolist()) in ([1.0], [0.5, 0.5])
+
+
+def test_subpixel_corner_labels():
+    """cornerSubPix labels find a corner between pixels; goodFeaturesToTrack's integer corner sits
+    inside the dark square (its Shi-Tomasi response peaks about a block from the corner point)."""
+    size, up = 64, 10  # rendered at 10x and area-averaged: an anti-aliased 8-bit edge, as the simulator renders
+    yy, xx = np.mgrid[0 : size * up, 0 : size * up]
+    rng = np.random.default_rng(0)
+    refined_err, integer_err = [], []
+    for _ in range(8):
+        corner = (30 + rng.random(), 27 + rng.random())  # the dark square's corner at a random sub-pixel position
+        # pixel centres at integers: the fine sample (i + 0.5) / up - 0.5 lies in pixel i // up
+        fine = ((xx + 0.5) / up - 0.5 >= corner[0]) & ((yy + 0.5) / up - 0.5 >= corner[1])
+        img = (255 * (1 - fine.reshape(size, up, size, up).mean((1, 3)))).astype(np.uint8)
+        integer = CornerLabeller(max_corners=1)(img)[0]
+        refined = CornerLabeller(max_corners=1, subpixel_window=3)(img)[0]
+        assert np.abs(integer - np.rint(integer)).max() == 0  # whole pixels
+        refined_err.append(np.linalg.norm(refined - corner))
+        integer_err.append(np.linalg.norm(integer - corner))
+    # 8-bit quantisation of the edge profile (1/255 of a pixel's area) and the 7x7 window's discrete
+    # gradients leave cornerSubPix a few tenths of a pixel; the integer corner is off by more than a pixel
+    assert max(refined_err) < 0.3 and min(integer_err) > 1.0
+    with pytest.raises(ValueError, match="subpixel_window"):
+        CornerLabeller(subpixel_window=-1)
+
+
 def test_losses_vanish_for_perfect_predictions():
     hc, wc = H // 8, W // 8
     labels = torch.randint(0, 65, (2, hc, wc))
     logits = torch.nn.functional.one_hot(labels, 65).permute(0, 3, 1, 2).float() * 50
     assert float(detector_loss(logits, labels)) < 1e-6
+    # soft targets: one-hot distributions give the same loss as the classes; a split target is
+    # minimised by logits whose softmax is that split (cross-entropy = its entropy, log 2 for halves)
+    onehot = torch.nn.functional.one_hot(labels, 65).permute(0, 3, 1, 2).float()
+    assert float(detector_loss(logits, onehot)) < 1e-6
+    half = torch.zeros(1, 65, 1, 1)
+    half[0, [3, 4]] = 0.5
+    split_logits = torch.full((1, 65, 1, 1), -50.0)
+    split_logits[0, [3, 4]] = 0.0
+    assert float(detector_loss(split_logits, half)) == pytest.approx(np.log(2), abs=1e-6)
     # descriptors: view 1 is view 0 shifted by one cell; orthogonal one-hot codes per cell
     n = hc * wc
     codes = torch.eye(n).T.reshape(1, n, hc, wc)  # D = n, cell i has code e_i
@@ -594,6 +655,28 @@ def test_roll_augmentation_keeps_pairs_supervised(sim_cache):
         assert not torch.equal(a["mcts1"], r["mcts1"])
         matched += int(torch.isfinite(r["warp01"]).all(-1).sum())
     assert matched > 0
+
+
+def test_soft_label_samples_are_the_integer_labels_spread(sim_cache):
+    """data.label_subpixel: the same sub-pixel corners as soft targets (distributions over 65 classes)
+    peak on the class the integer targets give them: the nearest pixel carries the largest bilinear weight."""
+    from aerovis_slam.mcts import MCTS_NE_EVENTS_PER_PX
+    from aerovis_slam.sim.cache import ensure_preset
+    from aerovis_train.data import EventPairDataset, MctsSpec
+
+    paths = sorted(ensure_preset("tiny", str(sim_cache), progress=False).glob("*.h5"))
+    kw = dict(crop=(40, 56), samples_per_epoch=4, seed=5, stereo_fraction=0.0, labeller=CornerLabeller(subpixel_window=3))
+    spec = MctsSpec("ne", MCTS_NE_EVENTS_PER_PX)
+    hard, soft = EventPairDataset(paths, spec, **kw), EventPairDataset(paths, spec, soft_labels=True, **kw)
+    labelled = 0
+    for i in range(4):
+        a, b = hard[i], soft[i]
+        for key in ("labels0", "labels1"):
+            assert b[key].dtype == torch.float32 and b[key].shape == (65, *a[key].shape)
+            torch.testing.assert_close(b[key].sum(0), torch.ones(a[key].shape))
+            assert torch.equal(b[key].argmax(0), a[key])
+            labelled += int((a[key] < 64).sum())
+    assert labelled > 0
 
 
 def test_training_benchmark_reports_what_it_measured(sim_cache):
