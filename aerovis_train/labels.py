@@ -61,6 +61,24 @@ def cross_view_consistent(xy0: np.ndarray, xy1: np.ndarray, view0: ViewGeometry,
     return vis & (d2 <= radius_px**2)  # NaN (not visible) compares False
 
 
+def _one_label_per_cell(xy: np.ndarray, hc: int, wc: int, rng: np.random.Generator, cell: int) -> tuple[np.ndarray, np.ndarray]:
+    """The labels that become cell targets: each label's nearest pixel must lie in the (hc x wc) cell
+    grid, and of several in one cell one is kept at random (the last in a random order).
+
+    Returns:
+        (M, 2) float64 positions and (M, 2) int64 nearest pixels of the kept labels, one per cell.
+    """
+    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    px = np.rint(xy).astype(np.int64)
+    ok = (px[:, 0] >= 0) & (px[:, 0] < wc * cell) & (px[:, 1] >= 0) & (px[:, 1] < hc * cell)
+    order = rng.permutation(int(ok.sum()))
+    xy, px = xy[ok][order], px[ok][order]
+    cells = (px[:, 1] // cell) * wc + px[:, 0] // cell
+    _, last_reversed = np.unique(cells[::-1], return_index=True)
+    keep = len(cells) - 1 - last_reversed
+    return xy[keep], px[keep]
+
+
 def cell_labels(xy: np.ndarray, height: int, width: int, rng: np.random.Generator, cell: int = 8) -> np.ndarray:
     """65-class targets per cell: (H/cell, W/cell) int64, ``(y % 8) * 8 + (x % 8)`` of one keypoint of
     the cell (chosen at random when a cell has several), 64 (dustbin) for cells without keypoints."""
@@ -68,9 +86,7 @@ def cell_labels(xy: np.ndarray, height: int, width: int, rng: np.random.Generato
     labels = np.full((hc, wc), cell * cell, np.int64)
     if len(xy) == 0:
         return labels
-    px = np.rint(xy).astype(np.int64)
-    ok = (px[:, 0] >= 0) & (px[:, 0] < wc * cell) & (px[:, 1] >= 0) & (px[:, 1] < hc * cell)
-    px = px[ok][rng.permutation(int(ok.sum()))]  # random order: the last write per cell wins at random
+    _, px = _one_label_per_cell(xy, hc, wc, rng, cell)
     labels[px[:, 1] // cell, px[:, 0] // cell] = (px[:, 1] % cell) * cell + (px[:, 0] % cell)
     return labels
 
@@ -92,17 +108,8 @@ def soft_cell_labels(xy: np.ndarray, height: int, width: int, rng: np.random.Gen
     target[cell * cell] = 1.0
     if len(xy) == 0:
         return target
-    xy = np.asarray(xy, np.float64).reshape(-1, 2)
-    px = np.rint(xy).astype(np.int64)
-    ok = (px[:, 0] >= 0) & (px[:, 0] < wc * cell) & (px[:, 1] >= 0) & (px[:, 1] < hc * cell)
-    order = rng.permutation(int(ok.sum()))
-    xy, px = xy[ok][order], px[ok][order]
-    # one keypoint per cell, the last in the random order (cell_labels' rule: the last write wins)
-    cells = (px[:, 1] // cell) * wc + px[:, 0] // cell
-    _, last_reversed = np.unique(cells[::-1], return_index=True)
-    keep = len(cells) - 1 - last_reversed
-    xy, cells = xy[keep], cells[keep]
-    cy, cx = cells // wc, cells % wc
+    xy, px = _one_label_per_cell(xy, hc, wc, rng, cell)
+    cy, cx = px[:, 1] // cell, px[:, 0] // cell
     base = np.floor(xy).astype(np.int64)
     frac = xy - base
     weights = np.zeros((len(xy), 4))

@@ -158,15 +158,16 @@ def make_dataset(cfg: DictConfig, paths: list[Path], size_multiple: int, samples
     multiples of ``size_multiple`` (the crop fitted by :func:`fit_crop`)."""
     crop = fit_crop(cfg, size_multiple)
     # data.label_subpixel: corners refined to sub-pixel positions and trained as soft cell targets
-    subpixel = int(cfg.data.get("label_subpixel", 0) or 0)
-    if subpixel < 0:
-        raise ValueError(f"data.label_subpixel must be >= 0 (cornerSubPix half-window in px; 0: integer labels), got {subpixel}")
+    try:
+        labeller = CornerLabeller(subpixel_window=int(cfg.data.get("label_subpixel", 0) or 0))
+    except ValueError as exc:
+        raise ValueError(f"data.label_subpixel (cornerSubPix half-window in px; 0: integer labels): {exc}") from None
     return EventPairDataset(
         paths, mcts_spec_from_config(cfg.model.mcts), crop=crop, max_gap_frames=int(cfg.data.max_gap_frames),
         stereo_fraction=float(cfg.data.stereo_fraction), supervision=str(cfg.data.supervision),
         samples_per_epoch=samples_per_epoch or int(cfg.data.samples_per_epoch), seed=int(cfg.seed),
         event_cache=event_cache_dir(cfg), roll_deg=float(cfg.data.get("roll_deg", 0.0)),
-        labeller=CornerLabeller(subpixel_window=subpixel), soft_labels=subpixel > 0)
+        labeller=labeller, soft_labels=labeller.subpixel_window > 0)
 
 
 def gpu_processes(trainer_cfg) -> int:
