@@ -231,7 +231,14 @@ def init_from_weights(model: torch.nn.Module, name_or_path: str, model_cfg) -> d
 
     src, src_cfg, meta = load_model(name_or_path)
     try:
-        model.load_state_dict(src.state_dict(), strict=True)
+        state = src.state_dict()
+        if getattr(model, "detector_pixel", None) is not None and getattr(src, "detector_pixel", None) is None:
+            # a pixel detector branch added to a network trained without one: it starts at zero
+            # (its last conv), so the run starts as the loaded network
+            state.update({f"detector_pixel.{k}": v for k, v in model.detector_pixel.state_dict().items()})
+            print("train.py: note: init_weights has no detector_pixel branch; the new branch starts at zero",
+                  file=sys.stderr)
+        model.load_state_dict(state, strict=True)
     except RuntimeError as exc:
         lines = str(exc).splitlines()
         first = lines[1].strip() if len(lines) > 1 else str(exc)

@@ -100,6 +100,35 @@ def test_scores_follow_the_cell_convention():
     assert peaks == [[y * 8 + 3, x * 8 + 5] for y in range(2) for x in range(3)]
 
 
+def test_pixel_detector_branch_starts_at_zero_and_follows_the_cell_convention():
+    # model.detector_pixel: full-resolution logits added to the cell head's 64 positions
+    torch.manual_seed(0)
+    plain = _tiny("vgg_lite").eval()
+    _randomise_batchnorm(plain)
+    cfg = {"name": "tiny_vgg_lite", "encoder": "vgg_lite", "in_channels": 8, "descriptor_dim": 32, "head_width": 32}
+    branch = build_model({**cfg, "detector_pixel": {"width": 8, "depth": 1}}).eval()
+    state = plain.state_dict()
+    state.update({f"detector_pixel.{k}": v for k, v in branch.detector_pixel.state_dict().items()})
+    branch.load_state_dict(state)
+    x = torch.rand(2, 8, 16, 24)
+    with torch.no_grad():
+        # its last conv starts at zero: the network is exactly the one without the branch
+        a, b = plain(x), branch(x)
+        assert all(torch.equal(a[k], b[k]) for k in a)
+        # a logit of 40 where input channel 0 is 1 (depth 1: one 3x3 conv, centre tap), none from the
+        # cell head: the score peaks at those pixels, wherever they sit in their cells
+        branch.detector.out.weight.zero_()
+        branch.detector.out.bias.zero_()
+        branch.detector_pixel.out.weight[0, 0, 1, 1] = 40.0
+        pixels = [(0, 0), (3, 13), (7, 23), (9, 2), (14, 10)]  # one per cell, at varied (dy, dx)
+        x = torch.zeros(1, 8, 16, 24)
+        for y, xx in pixels:
+            x[0, 0, y, xx] = 1.0
+        scores = branch(x)["scores"][0]
+    assert sorted(map(tuple, torch.nonzero(scores > 0.99).tolist())) == sorted(pixels)
+    assert branch.metadata()["detector_pixel"] == {"width": 8, "depth": 1} and plain.metadata()["detector_pixel"] is None
+
+
 def test_partitions_round_trip_and_grid_is_dilated():
     p, h, w = 5, 10, 15
     x = torch.arange(2 * h * w * 3, dtype=torch.float32).reshape(2, h, w, 3)
@@ -259,6 +288,10 @@ def test_invalid_configs_raise_clear_errors():
         build_model({**base, "encoder_conf": {"depth": [1, 0, 1, 1]}})
     with pytest.raises(ValueError, match=r"channels needs one value per stage \(3\), got 2"):
         build_model({**base, "encoder_conf": {"channels": [64, 64]}})
+    with pytest.raises(ValueError, match=r"detector_pixel needs width >= 1 and depth >= 1, got width=0, depth=3"):
+        build_model({**base, "detector_pixel": {"width": 0, "depth": 3}})
+    with pytest.raises(ValueError, match=r"detector_pixel takes width and depth, got \['widht'\]"):
+        build_model({**base, "detector_pixel": {"widht": 16}})
     # Stage widths round to whole attention heads instead of failing.
     assert build_model({**base, "encoder": "maxvit", "encoder_conf": {"head_dim": 12}}).encoder.widths == [36, 60, 132]
 
@@ -306,6 +339,14 @@ def _export_and_compare(net: KeypointNet, shape: tuple[int, int, int, int]) -> N
 def test_onnx_export_superlite_matches_torch():
     torch.manual_seed(1)
     _export_and_compare(build_model(_model_cfg("superlite")), (2, 8, 48, 64))
+
+
+def test_onnx_export_with_pixel_detector_matches_torch():
+    torch.manual_seed(3)
+    net = build_model({**OmegaConf.to_container(_model_cfg("superlite")), "detector_pixel": {"width": 8, "depth": 2}})
+    with torch.no_grad():  # a branch that contributes (it starts at zero)
+        net.detector_pixel.out.weight.normal_(0.0, 1.0)
+    _export_and_compare(net, (2, 8, 48, 64))
 
 
 def test_onnx_export_maxvit_matches_torch():

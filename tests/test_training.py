@@ -449,6 +449,28 @@ def test_fine_tuning_starts_from_the_given_weights(tmp_path, sim_cache):
         init_from_weights(build_model(plus), "superlite", plus)
 
 
+def test_pixel_detector_branch_starts_from_weights_without_it(capsys):
+    """init_weights of a network without model.detector_pixel into one with it: every loaded parameter is
+    kept and the new branch starts at zero, so the outputs are the loaded network's exactly."""
+    import torch
+
+    from aerovis_train.benchmarks import compose_config
+    from aerovis_train.checkpoints import load_model
+    from aerovis_train.models import build_model
+    from aerovis_train.training import init_from_weights
+
+    cfg = compose_config(["model=superlite", "model.detector_pixel={width:8,depth:2}"]).model
+    net = build_model(cfg)
+    init_from_weights(net, "superlite", cfg)
+    assert "new branch starts at zero" in capsys.readouterr().err
+    ship, _, _ = load_model("superlite")
+    net.eval()
+    x = torch.rand(1, 8, 48, 64, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        a, b = ship(x), net(x)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
 def test_descriptor_only_fine_tune_keeps_the_keypoints(tmp_path, sim_cache):
     """optim.train_only=[descriptor]: after steps on both sides of a validation, the encoder and detector
     head, BatchNorm statistics included, are bit-identical to the start weights, so the keypoints are; the

@@ -101,6 +101,7 @@ def build_model(cfg: Mapping[str, Any] | DictConfig) -> KeypointNet:
         name=str(cfg["name"]),
         encoder_name=cfg["encoder"],
         mcts=cfg.get("mcts"),
+        detector_pixel=cfg.get("detector_pixel"),
     )
 
 

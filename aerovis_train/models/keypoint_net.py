@@ -20,7 +20,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from aerovis_train.models.encoders import Encoder
-from aerovis_train.models.heads import DescriptorHead, DetectorHead
+from aerovis_train.models.heads import DescriptorHead, DetectorHead, PixelDetectorHead
 
 
 def depth_to_space(x: torch.Tensor, cell: int = 8) -> torch.Tensor:
@@ -57,6 +57,9 @@ class KeypointNet(nn.Module):
         mcts: The time-surface this network expects, ``{"kind": "ne"|"dt", "params": [...]}``
             (events per pixel for ``ne``, windows in ms for ``dt``); carried along, checked
             against ``in_channels`` (2 polarities x len(params)).
+        detector_pixel: ``{"width", "depth"}`` of a :class:`~aerovis_train.models.heads.PixelDetectorHead`
+            whose full-resolution logits are added to the detector's 64 position channels; None
+            (default): the cell head alone, as SuperPoint.
 
     Shapes:
         input: (B, in_channels, H, W) float, H and W multiples of ``size_multiple``.
@@ -75,7 +78,8 @@ class KeypointNet(nn.Module):
     cell: int = 8
 
     def __init__(self, encoder: Encoder, descriptor_dim: int, head_width: int = 256, *, name: str = "keypoint_net",
-                 encoder_name: str | None = None, mcts: Mapping[str, Any] | None = None):
+                 encoder_name: str | None = None, mcts: Mapping[str, Any] | None = None,
+                 detector_pixel: Mapping[str, Any] | None = None):
         super().__init__()
         if encoder.stride != self.cell:
             raise ValueError(f"encoder stride must be {self.cell}, got {encoder.stride}")
@@ -84,6 +88,13 @@ class KeypointNet(nn.Module):
         self.encoder = encoder
         self.detector = DetectorHead(encoder.out_channels, head_width, self.cell)
         self.descriptor = DescriptorHead(encoder.out_channels, descriptor_dim, head_width)
+        if detector_pixel is not None:
+            unknown = set(detector_pixel) - {"width", "depth"}
+            if unknown:
+                raise ValueError(f"detector_pixel takes width and depth, got {sorted(unknown)}")
+            self.detector_pixel = PixelDetectorHead(encoder.in_channels, **{k: int(v) for k, v in detector_pixel.items()})
+        else:
+            self.detector_pixel = None
         self.descriptor_dim = int(descriptor_dim)
         self.head_width = int(head_width)
         self.name = name
@@ -131,6 +142,11 @@ class KeypointNet(nn.Module):
         """Unchecked forward: (logits, scores, descriptors) with the shapes of :meth:`forward`."""
         feats = self.encoder(x)
         logits = self.detector(feats)
+        if self.detector_pixel is not None:
+            # pixel logits regrouped into the cell channels (k = 8 * dy + dx) and added to the
+            # positions; the dustbin is left to the cell head, which sees the whole cell
+            pixel = space_to_depth(self.detector_pixel(x)[:, 0], self.cell)
+            logits = torch.cat([logits[:, : self.cell * self.cell] + pixel, logits[:, self.cell * self.cell:]], 1)
         # Softmax and normalisation in float32 even under autocast/FP16: FP16 probabilities
         # below ~6e-8 flush to zero and lose weak keypoints.
         prob = logits.float().softmax(1)[:, : self.cell * self.cell]
@@ -158,6 +174,8 @@ class KeypointNet(nn.Module):
             "size_multiple": self.size_multiple,
             "cell_channel_order": "k = 8 * dy + dx, dustbin last",
             "mcts": None if self.mcts is None else {**self.mcts, "channel_order": CHANNEL_ORDER},
+            "detector_pixel": None if self.detector_pixel is None else {"width": self.detector_pixel.width,
+                                                                        "depth": self.detector_pixel.depth},
         }
 
 
