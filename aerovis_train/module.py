@@ -80,7 +80,8 @@ class KeypointModule(L.LightningModule):
 
     # -- which parts learn: optim.train_only ---------------------------------------------------
     def frozen_parts(self) -> list[str]:
-        """Top-level parts of the network (``encoder``, ``detector``, ``descriptor``) that this run keeps fixed.
+        """Top-level parts of the network (``encoder``, ``detector``, ``descriptor``, and ``detector_pixel`` where
+        ``model.detector_pixel`` adds it) that this run keeps fixed.
 
         ``optim.train_only: [descriptor]`` fine-tunes the descriptor head alone: the keypoints (encoder and
         detector head, BatchNorm statistics included) stay bit-identical to the start weights, so a fine-tune
