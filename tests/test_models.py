@@ -126,7 +126,40 @@ def test_pixel_detector_branch_starts_at_zero_and_follows_the_cell_convention():
             x[0, 0, y, xx] = 1.0
         scores = branch(x)["scores"][0]
     assert sorted(map(tuple, torch.nonzero(scores > 0.99).tolist())) == sorted(pixels)
-    assert branch.metadata()["detector_pixel"] == {"width": 8, "depth": 1} and plain.metadata()["detector_pixel"] is None
+    assert branch.metadata()["detector_pixel"] == {"width": 8, "depth": 1, "within_cell": False}
+    assert plain.metadata()["detector_pixel"] is None
+
+
+def test_pixel_detector_within_cell_moves_keypoints_but_keeps_each_cells_mass():
+    # detector_pixel.within_cell: the branch chooses the pixel, the cell head how likely the cell holds one
+    torch.manual_seed(0)
+    cfg = {"name": "tiny_vgg_lite", "encoder": "vgg_lite", "in_channels": 8, "descriptor_dim": 32, "head_width": 32}
+    net = build_model({**cfg, "detector_pixel": {"width": 8, "depth": 1, "within_cell": True}}).eval()
+    _randomise_batchnorm(net)
+    x = torch.rand(2, 8, 16, 24)
+    with torch.no_grad():
+        before = net(x)["scores"]
+        net.detector_pixel.out.weight.normal_(0.0, 2.0)  # a branch that contributes everywhere
+        after = net(x)["scores"]
+        # each cell's keypoint probability (sum over its 64 pixels) is the cell head's, to float32
+        # rounding of the log-sum-exp shift (~1e-7 relative per term); the distribution inside moves
+        mass = lambda s: s.reshape(2, 2, 8, 3, 8).sum((2, 4))  # noqa: E731
+        torch.testing.assert_close(mass(after), mass(before), rtol=1e-5, atol=1e-7)
+        assert (after - before).abs().max() > 1e-2
+        # cell head silent (all 65 logits 0: each cell 64/65 keypoint) and a logit of 40 at one pixel per
+        # cell: that pixel takes the cell's whole mass 64/65, the dustbin keeps 1/65
+        net.detector.out.weight.zero_()
+        net.detector.out.bias.zero_()
+        net.detector_pixel.out.weight.zero_()
+        net.detector_pixel.out.weight[0, 0, 1, 1] = 40.0
+        pixels = [(0, 0), (3, 13), (7, 23), (9, 2), (14, 10), (12, 20)]  # one per cell, at varied (dy, dx)
+        x = torch.zeros(1, 8, 16, 24)
+        for y, xx in pixels:
+            x[0, 0, y, xx] = 1.0
+        scores = net(x)["scores"][0]
+    peak = scores[tuple(torch.tensor(pixels).T)]
+    torch.testing.assert_close(peak, torch.full_like(peak, 64 / 65), rtol=1e-6, atol=1e-6)
+    assert net.metadata()["detector_pixel"] == {"width": 8, "depth": 1, "within_cell": True}
 
 
 def test_partitions_round_trip_and_grid_is_dilated():
@@ -290,8 +323,10 @@ def test_invalid_configs_raise_clear_errors():
         build_model({**base, "encoder_conf": {"channels": [64, 64]}})
     with pytest.raises(ValueError, match=r"detector_pixel needs width >= 1 and depth >= 1, got width=0, depth=3"):
         build_model({**base, "detector_pixel": {"width": 0, "depth": 3}})
-    with pytest.raises(ValueError, match=r"detector_pixel takes width and depth, got \['widht'\]"):
+    with pytest.raises(ValueError, match=r"detector_pixel takes width, depth and within_cell, got \['widht'\]"):
         build_model({**base, "detector_pixel": {"widht": 16}})
+    with pytest.raises(ValueError, match=r"detector_pixel.within_cell must be true or false, got 'yes'"):
+        build_model({**base, "detector_pixel": {"width": 16, "within_cell": "yes"}})
     # Stage widths round to whole attention heads instead of failing.
     assert build_model({**base, "encoder": "maxvit", "encoder_conf": {"head_dim": 12}}).encoder.widths == [36, 60, 132]
 
@@ -341,9 +376,11 @@ def test_onnx_export_superlite_matches_torch():
     _export_and_compare(build_model(_model_cfg("superlite")), (2, 8, 48, 64))
 
 
-def test_onnx_export_with_pixel_detector_matches_torch():
+@pytest.mark.parametrize("within_cell", [False, True])
+def test_onnx_export_with_pixel_detector_matches_torch(within_cell):
     torch.manual_seed(3)
-    net = build_model({**OmegaConf.to_container(_model_cfg("superlite")), "detector_pixel": {"width": 8, "depth": 2}})
+    net = build_model({**OmegaConf.to_container(_model_cfg("superlite")),
+                       "detector_pixel": {"width": 8, "depth": 2, "within_cell": within_cell}})
     with torch.no_grad():  # a branch that contributes (it starts at zero)
         net.detector_pixel.out.weight.normal_(0.0, 1.0)
     _export_and_compare(net, (2, 8, 48, 64))

@@ -57,9 +57,12 @@ class KeypointNet(nn.Module):
         mcts: The time-surface this network expects, ``{"kind": "ne"|"dt", "params": [...]}``
             (events per pixel for ``ne``, windows in ms for ``dt``); carried along, checked
             against ``in_channels`` (2 polarities x len(params)).
-        detector_pixel: ``{"width", "depth"}`` of a :class:`~aerovis_train.models.heads.PixelDetectorHead`
-            whose full-resolution logits are added to the detector's 64 position channels; None
-            (default): the cell head alone, as SuperPoint.
+        detector_pixel: ``{"width", "depth"[, "within_cell"]}`` of a
+            :class:`~aerovis_train.models.heads.PixelDetectorHead` whose full-resolution logits are
+            added to the detector's 64 position channels; None (default): the cell head alone, as
+            SuperPoint. ``within_cell: true`` shifts the sum back per cell so that its log-sum-exp
+            over the 64 positions is the cell head's: the branch then moves a keypoint inside its
+            cell but leaves each cell's keypoint probability (one minus the dustbin's) unchanged.
 
     Shapes:
         input: (B, in_channels, H, W) float, H and W multiples of ``size_multiple``.
@@ -89,12 +92,18 @@ class KeypointNet(nn.Module):
         self.detector = DetectorHead(encoder.out_channels, head_width, self.cell)
         self.descriptor = DescriptorHead(encoder.out_channels, descriptor_dim, head_width)
         if detector_pixel is not None:
-            unknown = set(detector_pixel) - {"width", "depth"}
+            unknown = set(detector_pixel) - {"width", "depth", "within_cell"}
             if unknown:
-                raise ValueError(f"detector_pixel takes width and depth, got {sorted(unknown)}")
-            self.detector_pixel = PixelDetectorHead(encoder.in_channels, **{k: int(v) for k, v in detector_pixel.items()})
+                raise ValueError(f"detector_pixel takes width, depth and within_cell, got {sorted(unknown)}")
+            within = detector_pixel.get("within_cell", False)
+            if not isinstance(within, bool):
+                raise ValueError(f"detector_pixel.within_cell must be true or false, got {within!r}")
+            self.detector_pixel = PixelDetectorHead(encoder.in_channels, **{k: int(v) for k, v in detector_pixel.items()
+                                                                            if k != "within_cell"})
+            self.pixel_within_cell = within
         else:
             self.detector_pixel = None
+            self.pixel_within_cell = False
         self.descriptor_dim = int(descriptor_dim)
         self.head_width = int(head_width)
         self.name = name
@@ -146,7 +155,14 @@ class KeypointNet(nn.Module):
             # pixel logits regrouped into the cell channels (k = 8 * dy + dx) and added to the
             # positions; the dustbin is left to the cell head, which sees the whole cell
             pixel = space_to_depth(self.detector_pixel(x)[:, 0], self.cell)
-            logits = torch.cat([logits[:, : self.cell * self.cell] + pixel, logits[:, self.cell * self.cell:]], 1)
+            positions = logits[:, : self.cell * self.cell]
+            moved = positions + pixel
+            if self.pixel_within_cell:
+                # same log-sum-exp over the cell as before: against the dustbin the cell keeps the
+                # cell head's probability, so which cells hold a keypoint is the cell head's call
+                moved = moved - moved.float().logsumexp(1, keepdim=True).to(moved.dtype) \
+                    + positions.float().logsumexp(1, keepdim=True).to(moved.dtype)
+            logits = torch.cat([moved, logits[:, self.cell * self.cell:]], 1)
         # Softmax and normalisation in float32 even under autocast/FP16: FP16 probabilities
         # below ~6e-8 flush to zero and lose weak keypoints.
         prob = logits.float().softmax(1)[:, : self.cell * self.cell]
@@ -175,7 +191,8 @@ class KeypointNet(nn.Module):
             "cell_channel_order": "k = 8 * dy + dx, dustbin last",
             "mcts": None if self.mcts is None else {**self.mcts, "channel_order": CHANNEL_ORDER},
             "detector_pixel": None if self.detector_pixel is None else {"width": self.detector_pixel.width,
-                                                                        "depth": self.detector_pixel.depth},
+                                                                        "depth": self.detector_pixel.depth,
+                                                                        "within_cell": self.pixel_within_cell},
         }
 
 
