@@ -225,6 +225,12 @@ def test_search_configs_compose_into_buildable_models():
               f"+model.encoder_conf.width_mult={params['+model.encoder_conf.width_mult']['low']}", "run_dir=."]
         net = build_model(compose_train_config(ov).model)
         assert net.encoder_name == enc
+    # the detector branch's choices are override strings (Optuna's categories cannot be dicts)
+    from aerovis_train.search.optuna_search import _override_value
+
+    built = [build_model(compose_train_config([f"model.detector_pixel={_override_value(v)}", "run_dir=."]).model)
+             for v in params["model.detector_pixel"]["choices"]]
+    assert [n.metadata()["detector_pixel"] for n in built] == [None, {"width": 16, "depth": 3, "within_cell": False}]
 
 
 def test_optuna_bad_search_config(tmp_path, capsys):
