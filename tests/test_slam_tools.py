@@ -1094,3 +1094,78 @@ def test_cpuinfo_names_the_model_and_the_widest_simd_level(tmp_path):
     assert environment._cpuinfo(str(arm)) == (None, "asimd")
     assert environment._cpuinfo(str(tmp_path / "absent")) == (None, None)
     assert set(environment.software_versions()["host"]) == {"machine", "processor", "cpu_model", "simd", "cpus"}
+
+
+def _bench_rows(detector: str, runs: dict[str, list], mode: str = "sync") -> list[dict]:
+    """bench.json rows: per sequence, one run per value (a float is an ok run's ATE %, a string its status)."""
+    rows = []
+    for seq, values in runs.items():
+        for i, v in enumerate(values):
+            ok = not isinstance(v, str)
+            rows.append({"sequence": seq, "mode": mode, "detector": detector, "status": "ok" if ok else v,
+                         "ate_pct": float(v) if ok else None, "ate_pct_final": float(v) / 2 if ok else None, "repeat": i})
+    return rows
+
+
+def test_compare_benches_medians_intervals_and_failures():
+    from aerovis_slam.slam.compare import compare_benches, format_comparison
+
+    # constant runs: every resample has the same medians, so the interval is the difference itself
+    a = _bench_rows("superlite-fp32", {"s1": [1.0, 1.0, 1.0, 1.0], "s2": [2.0, 3.0, 4.0]})
+    b = _bench_rows("x-fp32", {"s1": [0.7, 0.7, 0.7], "s2": [1.0, 3.5, "diverged"], "s3": [0.1]})
+    r = compare_benches(a, b)
+    s1, s2 = r["sequences"]  # s3 is not in A: left out
+    assert [s["sequence"] for s in r["sequences"]] == ["s1", "s2"]
+    assert s1["median_a"] == 1.0 and s1["median_b"] == 0.7 and s1["b_lower"] == 1.0
+    assert s1["difference"] == pytest.approx(-0.3, abs=1e-12) and s1["interval"] == pytest.approx([-0.3, -0.3], abs=1e-12)
+    # a diverged run counts as infinitely bad: B's median of (1.0, 3.5, inf) is 3.5, not a mean over two runs
+    assert s2["runs_b"] == [1.0, 3.5, "diverged"] and s2["median_b"] == 3.5 and s2["difference"] == pytest.approx(0.5)
+    # pairs (A run, B run) with B lower: 1.0 beats 2, 3, 4; 3.5 beats 4; inf beats none -> 4 of 9
+    assert s2["b_lower"] == pytest.approx(4 / 9)
+    # a resample of B draws "diverged" at least twice with probability 7/27 (> 2.5 %): no median there, an
+    # infinite difference, so the interval is unbounded above
+    lo, hi = s2["interval"]
+    assert lo <= 0.5 and hi is None
+    assert r["overall"]["mean_of_medians_a"] == pytest.approx(2.0) and r["overall"]["mean_of_medians_b"] == pytest.approx(2.1)
+    assert r["overall"]["difference"] == pytest.approx(0.1)
+    # the final trajectories' ATE instead of the live one (halved in these rows)
+    assert compare_benches(a, b, key="ate_pct_final")["sequences"][0]["difference"] == pytest.approx(-0.15)
+    table = format_comparison(r, "old", "new")
+    assert "| s2 | 2.00, 3.00, 4.00 | 1.00, 3.50, diverged | 3.00 | 3.50 | +0.50 | -3.00 to unbounded | 44 % |" in table
+    assert "| mean over 2 sequences | | | 2.00 | 2.10 | +0.10 |" in table
+    # half the runs failed: no median, no difference, and an interval unbounded above
+    r = compare_benches(a, _bench_rows("x", {"s1": [0.5, "failed"]}))
+    assert r["sequences"][0]["median_b"] is None and r["sequences"][0]["difference"] is None
+    assert r["sequences"][0]["interval"][1] is None
+
+
+def test_compare_benches_bad_input(tmp_path):
+    from aerovis_slam.slam.compare import compare_benches, load_bench
+
+    with pytest.raises(DataError, match="bench.json: no such file"):
+        load_bench(tmp_path)
+    (tmp_path / "bench.json").write_text('[{"sequence": "s1", "mode": "sync"}]')
+    with pytest.raises(DataError, match=r"bench.json: expected a list of runs, each with sequence, mode, detector, status"):
+        load_bench(tmp_path)
+    two = _bench_rows("superlite-fp32", {"s1": [1.0]}) + _bench_rows("orb", {"s1": [2.0]})
+    with pytest.raises(DataError, match=r"A: 2 detectors in mode 'sync' \(superlite-fp32, orb\): name one"):
+        compare_benches(two, two)
+    assert compare_benches(two, two, detector_a="orb", detector_b="superlite-fp32")["sequences"][0]["difference"] == -1.0
+    with pytest.raises(DataError, match=r"B: no runs of detector 'sift' in mode 'sync'"):
+        compare_benches(two, two, detector_a="orb", detector_b="sift")
+    with pytest.raises(DataError, match="no sequence in common with A in mode 'async'"):
+        compare_benches(_bench_rows("x", {"s1": [1.0]}, "async"), _bench_rows("x", {"s2": [1.0]}, "async"), mode="async")
+
+
+def test_cli_compare_prints_table_and_json(tmp_path, capsys):
+    for name, runs in (("a", {"s1": [1.0, 1.2]}), ("b", {"s1": [0.8, 0.9]})):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "bench.json").write_text(json.dumps(_bench_rows("superlite-fp32", runs)))
+    out_md = tmp_path / "cmp.md"
+    assert main(["compare", str(tmp_path / "a"), str(tmp_path / "b"), "--labels", "old", "new", "--out", str(out_md)]) == 0
+    text = capsys.readouterr().out
+    res = json.loads(text.strip().splitlines()[-1])
+    assert res["sequences"][0]["difference"] == pytest.approx(0.85 - 1.1) and res["sequences"][0]["b_lower"] == 1.0
+    assert out_md.read_text() in text and "| s1 | 1.00, 1.20 | 0.80, 0.90 | 1.10 | 0.85 | -0.25 |" in text
+    assert main(["compare", str(tmp_path / "a"), str(tmp_path / "missing")]) == 2
+    assert "missing: no such file" in capsys.readouterr().err

@@ -8,6 +8,8 @@
                        [--modes sync async] [--config NAME|FILE] [--no-loop] [--resume] --out DIR
     aerovis-slam vocab (--model BUNDLE | --detector orb|sift|gftt_brief) [--data train|DIR|SEQ.h5 ...]
                        [--frames N] [--words K] [--out FILE]
+    aerovis-slam compare BENCH_A BENCH_B [--mode sync|async] [--detector-a NAME] [--detector-b NAME]
+                         [--labels A B] [--final] [--out FILE.md]
 
 ``run`` writes ``DIR/traj.txt`` (TUM, body frame; ``traj.partial.txt`` with a header flag when the run
 stopped early, e.g. on Ctrl-C), ``DIR/metrics.json``, ``DIR/traj.png`` and ``DIR/frames.txt`` (each
@@ -26,6 +28,10 @@ rooms and paths of the same kinds; or ``--sequences``) in sync
 (``accurate`` setting) and async (``realtime`` setting) mode with the learned detector and the
 classical one on the same time surfaces, and writes ``DIR/table.md`` (paper Table I form),
 ``DIR/bench.json`` and each run's outputs under ``DIR/<sequence>/<detector>-<mode>/``.
+
+``compare`` sets two ``bench --repeats N`` outputs side by side, per sequence: each side's runs, their
+medians, B's median minus A's with a 95 % bootstrap interval, and the share of run pairs in which B is
+lower; then the mean over sequences (a Markdown table, and one JSON line last).
 
 ``vocab`` learns the loop-closure vocabulary of a detector from the ``train`` preset and stores it
 under the detector's name in the shipped ``aerovis_slam/slam/data/vocabulary.npz`` (or ``--out``).
@@ -111,6 +117,16 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--diverge-min-m", type=float, default=0.10, help="... and above this many metres")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--quiet", action="store_true", help="no progress bar or per-run lines")
+
+    p = sub.add_parser("compare", help="two bench outputs side by side: per-sequence medians over runs, differences with intervals")
+    p.add_argument("bench_a", help="bench folder (or its bench.json): the reference")
+    p.add_argument("bench_b", help="bench folder (or its bench.json): the one compared with it")
+    p.add_argument("--mode", choices=("sync", "async"), default="sync")
+    p.add_argument("--detector-a", help="detector of bench A (default: its only one in that mode)")
+    p.add_argument("--detector-b", help="detector of bench B (default: its only one in that mode)")
+    p.add_argument("--labels", nargs=2, metavar=("A", "B"), help="names in the table (default: the folder names)")
+    p.add_argument("--final", action="store_true", help="the final trajectories' ATE instead of the live outputs'")
+    p.add_argument("--out", help="also write the table to this Markdown file")
 
     p = sub.add_parser("vocab", help="learn a loop-closure vocabulary for a detector from training sequences")
     p.add_argument("--model", help="model bundle directory (its name keys the vocabulary)")
@@ -301,10 +317,28 @@ def cmd_vocab(args) -> int:
     return 0
 
 
+def cmd_compare(args) -> int:
+    from .compare import compare_benches, format_comparison, load_bench
+
+    res = compare_benches(load_bench(args.bench_a), load_bench(args.bench_b), mode=args.mode, detector_a=args.detector_a,
+                          detector_b=args.detector_b, key="ate_pct_final" if args.final else "ate_pct",
+                          where_a=args.bench_a, where_b=args.bench_b)
+    labels = args.labels or [Path(args.bench_a).name or "A", Path(args.bench_b).name or "B"]
+    table = format_comparison(res, *labels)
+    if args.out:
+        from ..fileio import atomic_write_text
+
+        atomic_write_text(args.out, table)
+    print(table)
+    print(json.dumps({"a": args.bench_a, "b": args.bench_b, **res}))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
-        return {"run": cmd_run, "eval": cmd_eval, "bench": cmd_bench, "vocab": cmd_vocab}[args.command](args)
+        return {"run": cmd_run, "eval": cmd_eval, "bench": cmd_bench, "vocab": cmd_vocab,
+                "compare": cmd_compare}[args.command](args)
     except DataError as exc:
         print(f"{PROG} {args.command}: {exc}", file=sys.stderr)
         return 2
