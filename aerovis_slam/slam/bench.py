@@ -385,14 +385,21 @@ def _mean_ate_pct(runs: list[dict], key: str = "ate_pct") -> float | None:
     return float(np.mean([r[key] for r in runs]))
 
 
+def ate_values(runs: list[dict], key: str = "ate_pct") -> np.ndarray:
+    """ATE % of path per run (``key``: ``ate_pct`` live, ``ate_pct_final`` the final trajectory), +inf
+    for a run that is not ``ok`` (failed, diverged, partial) or has no value: infinitely bad, as the
+    paper's Table I counts a failure inside a median."""
+    return np.array([float(r[key]) if r["status"] == "ok" and r.get(key) is not None else np.inf for r in runs])
+
+
 def _median_ate_pct(runs: list[dict], key: str = "ate_pct") -> float | None:
     """Median ATE % of path over ``runs`` as the paper's Table I counts it (the median of 5 runs; a
     system that crashes or diverges in at least 3 of them is marked failed): a run that is not
-    ``ok`` counts as infinitely bad, so the median exists while fewer than half the runs failed.
-    None when it does not (or there are no runs)."""
+    ``ok`` counts as infinitely bad (:func:`ate_values`), so the median exists while fewer than half
+    the runs failed. None when it does not (or there are no runs)."""
     if not runs:
         return None
-    med = float(np.median([r[key] if r["status"] == "ok" and r.get(key) is not None else np.inf for r in runs]))
+    med = float(np.median(ate_values(runs, key)))
     return med if np.isfinite(med) else None
 
 

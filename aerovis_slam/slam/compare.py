@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
+from .bench import ate_values
 
 KEYS = ("ate_pct", "ate_pct_final")
 
@@ -47,11 +48,6 @@ def load_bench(bench_dir: str | os.PathLike) -> list[dict]:
     if not isinstance(rows, list) or not all(isinstance(r, dict) and all(k in r for k in need) for r in rows):
         raise DataError(path, f"expected a list of runs, each with {', '.join(need)}")
     return rows
-
-
-def _values(runs: list[dict], key: str) -> np.ndarray:
-    """ATE % per run, +inf for a run that is not ``ok`` (failed, diverged, partial) or has no value."""
-    return np.array([float(r[key]) if r["status"] == "ok" and r.get(key) is not None else np.inf for r in runs])
 
 
 def _cells(rows: list[dict], mode: str, detector: str | None, where: str) -> tuple[str, dict[str, list[dict]]]:
@@ -109,7 +105,7 @@ def compare_benches(rows_a: list[dict], rows_b: list[dict], *, mode: str = "sync
     rng = np.random.default_rng(seed)
     out_seq, boot_a, boot_b = [], [], []
     for s in seqs:
-        a, b = _values(cells_a[s], key), _values(cells_b[s], key)
+        a, b = ate_values(cells_a[s], key), ate_values(cells_b[s], key)
         # resampled medians of each side (n_boot,), drawn independently: the runs are not paired
         ra = _median(a[rng.integers(0, len(a), (n_boot, len(a)))], axis=1)
         rb = _median(b[rng.integers(0, len(b), (n_boot, len(b)))], axis=1)
@@ -124,8 +120,8 @@ def compare_benches(rows_a: list[dict], rows_b: list[dict], *, mode: str = "sync
             "interval": _interval(diff),
             "b_lower": float(np.mean(b[None, :] < a[:, None]) + 0.5 * np.mean(b[None, :] == a[:, None])),
         })
-    ma = np.mean([_median(_values(cells_a[s], key)) for s in seqs])
-    mb = np.mean([_median(_values(cells_b[s], key)) for s in seqs])
+    ma = np.mean([_median(ate_values(cells_a[s], key)) for s in seqs])
+    mb = np.mean([_median(ate_values(cells_b[s], key)) for s in seqs])
     with np.errstate(invalid="ignore"):
         diff = np.mean(boot_b, axis=0) - np.mean(boot_a, axis=0)
     overall = {"mean_of_medians_a": _finite(ma), "mean_of_medians_b": _finite(mb),
