@@ -68,7 +68,7 @@ def _cells(rows: list[dict], mode: str, detector: str | None, where: str) -> tup
 
 
 def _median(x: np.ndarray, axis=None):
-    # numpy's median of a set holding +inf is +inf only once half the set is; it warns on inf - inf
+    # a set holding +inf (failed runs) has a finite median while fewer than half are: inf is expected here
     with np.errstate(invalid="ignore"):
         return np.median(x, axis=axis)
 
@@ -85,15 +85,19 @@ def compare_benches(rows_a: list[dict], rows_b: list[dict], *, mode: str = "sync
         n_boot: bootstrap resamples; ``seed`` their generator's seed.
 
     Returns:
-        JSON-ready dict: ``detector_a``, ``detector_b``, ``mode``, ``key``, ``sequences``: one dict per
-        sequence with ``runs_a``, ``runs_b`` (ATE % per run, or the run's status where it is not
-        ``ok``), ``median_a``,
-        ``median_b`` (None when half or more of the runs failed), ``difference`` (median B - median A,
-        points of ATE %), ``interval`` (95 % bootstrap interval of that difference, [low, high], a bound
-        None where failures leave it unbounded) and ``b_lower``
-        (the share of the (A run, B run) pairs in which B's run is lower: 0.5 means no difference);
-        and ``overall``: the same difference and interval for the mean over sequences of the medians,
-        with ``mean_of_medians_a`` and ``_b``. Differences are negative where B is better.
+        JSON-ready dict: ``detector_a``, ``detector_b``, ``mode``, ``key``, ``n_boot``, ``seed``;
+        ``sequences``, one dict per sequence in both benches:
+
+        * ``runs_a``, ``runs_b``: ATE % per run, or the run's status where it is not ``ok``;
+        * ``median_a``, ``median_b``: None when half or more of the runs failed;
+        * ``difference``: median B - median A (points of ATE %; negative where B is better);
+        * ``interval``: [low, high], the 95 % bootstrap interval of that difference (a bound None
+          where failures leave it unbounded);
+        * ``b_lower``: the share of (A run, B run) pairs in which B's run is lower (ties count half;
+          0.5: no difference);
+
+        and ``overall``: ``mean_of_medians_a``, ``mean_of_medians_b``, their ``difference`` and its
+        ``interval``.
     """
     if key not in KEYS:
         raise ValueError(f"key must be one of {KEYS}, got {key!r}")
