@@ -369,7 +369,7 @@ def _repeat(r: dict) -> int:
     return int(r.get("repeat", 0))  # bench.json files written before repeats existed have none
 
 
-def _spread_cells(rows: list[dict]) -> dict[tuple[str, str, str], list[dict]]:
+def spread_cells(rows: list[dict]) -> dict[tuple[str, str, str], list[dict]]:
     """(sequence, detector, mode) -> its rows of every repeat, in repeat order."""
     out: dict[tuple[str, str, str], list[dict]] = {}
     for r in sorted(rows, key=_repeat):
@@ -473,7 +473,7 @@ def format_table(rows: list[dict], *, software: dict | None = None) -> str:
                   "true projection of the scene point under each landmark's first sighting (after the track refinement, "
                   "where the setting has it on).", ""]
         lines += first_run_table(lambda r: "" if r.get("keypoint_error_px") is None else f"{r['keypoint_error_px']:.2f}")
-    spread = _spread_cells(all_rows)
+    spread = spread_cells(all_rows)
 
     def spread_table(key: str) -> list[str]:
         out = header(False)
@@ -521,7 +521,7 @@ def summarize(rows: list[dict]) -> dict:
     ``repeats`` and ``best_on_mean``: the same count by the mean ATE % over all repeats (a cell with
     a failed repeat loses), and ``best_on_median`` by the median (:func:`_median_ate_pct`, the
     paper's statistic)."""
-    spread = _spread_cells(rows)
+    spread = spread_cells(rows)
     n_rep = max((len(v) for v in spread.values()), default=1)
     rows = [r for r in rows if _repeat(r) == 0]
     out = {}

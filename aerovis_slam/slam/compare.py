@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
-from .bench import ate_values
+from .bench import ate_values, spread_cells
 
 KEYS = ("ate_pct", "ate_pct_final")
 
@@ -51,26 +51,16 @@ def load_bench(bench_dir: str | os.PathLike) -> list[dict]:
 
 
 def _cells(rows: list[dict], mode: str, detector: str | None, where: str) -> tuple[str, dict[str, list[dict]]]:
-    """(detector name, sequence -> runs) of one detector in one mode of a bench."""
-    rows = [r for r in rows if r["mode"] == mode]
-    names = list(dict.fromkeys(r["detector"] for r in rows))
+    """(detector name, sequence -> runs in repeat order) of one detector in one mode of a bench."""
+    cells = {k: runs for k, runs in spread_cells(rows).items() if k[2] == mode}  # (sequence, detector, mode)
+    names = list(dict.fromkeys(k[1] for k in cells))
     if detector is None:
         if len(names) != 1:
             raise DataError(where, f"{len(names)} detectors in mode {mode!r} ({', '.join(names) or 'none'}): name one")
         detector = names[0]
     elif detector not in names:
         raise DataError(where, f"no runs of detector {detector!r} in mode {mode!r} (it has: {', '.join(names) or 'none'})")
-    cells: dict[str, list[dict]] = {}
-    for r in rows:
-        if r["detector"] == detector:
-            cells.setdefault(r["sequence"], []).append(r)
-    return detector, cells
-
-
-def _median(x: np.ndarray, axis=None):
-    # a set holding +inf (failed runs) has a finite median while fewer than half are: inf is expected here
-    with np.errstate(invalid="ignore"):
-        return np.median(x, axis=axis)
+    return detector, {k[0]: runs for k, runs in cells.items() if k[1] == detector}
 
 
 def compare_benches(rows_a: list[dict], rows_b: list[dict], *, mode: str = "sync", detector_a: str | None = None,
@@ -107,29 +97,24 @@ def compare_benches(rows_a: list[dict], rows_b: list[dict], *, mode: str = "sync
     if not seqs:
         raise DataError(where_b, f"no sequence in common with {where_a} in mode {mode!r}")
     rng = np.random.default_rng(seed)
-    out_seq, boot_a, boot_b = [], [], []
+    out_seq, med_a, med_b, boot_a, boot_b = [], [], [], [], []
     for s in seqs:
         a, b = ate_values(cells_a[s], key), ate_values(cells_b[s], key)
+        ma, mb = float(np.median(a)), float(np.median(b))  # +inf once half the runs failed
+        med_a.append(ma)
+        med_b.append(mb)
         # resampled medians of each side (n_boot,), drawn independently: the runs are not paired
-        ra = _median(a[rng.integers(0, len(a), (n_boot, len(a)))], axis=1)
-        rb = _median(b[rng.integers(0, len(b), (n_boot, len(b)))], axis=1)
-        boot_a.append(ra)
-        boot_b.append(rb)
-        ma, mb = float(_median(a)), float(_median(b))
-        with np.errstate(invalid="ignore"):
-            diff = rb - ra
+        boot_a.append(np.median(a[rng.integers(0, len(a), (n_boot, len(a)))], axis=1))
+        boot_b.append(np.median(b[rng.integers(0, len(b), (n_boot, len(b)))], axis=1))
         out_seq.append({
             "sequence": s, "runs_a": _runs(cells_a[s], a), "runs_b": _runs(cells_b[s], b),
-            "median_a": _finite(ma), "median_b": _finite(mb), "difference": _finite(mb - ma) if np.isfinite(ma) and np.isfinite(mb) else None,
-            "interval": _interval(diff),
+            "median_a": _finite(ma), "median_b": _finite(mb), "difference": _finite(mb - ma),
+            "interval": _interval(_difference(boot_b[-1], boot_a[-1])),
             "b_lower": float(np.mean(b[None, :] < a[:, None]) + 0.5 * np.mean(b[None, :] == a[:, None])),
         })
-    ma = np.mean([_median(ate_values(cells_a[s], key)) for s in seqs])
-    mb = np.mean([_median(ate_values(cells_b[s], key)) for s in seqs])
-    with np.errstate(invalid="ignore"):
-        diff = np.mean(boot_b, axis=0) - np.mean(boot_a, axis=0)
-    overall = {"mean_of_medians_a": _finite(ma), "mean_of_medians_b": _finite(mb),
-               "difference": _finite(mb - ma) if np.isfinite(ma) and np.isfinite(mb) else None, "interval": _interval(diff)}
+    ma, mb = float(np.mean(med_a)), float(np.mean(med_b))
+    overall = {"mean_of_medians_a": _finite(ma), "mean_of_medians_b": _finite(mb), "difference": _finite(mb - ma),
+               "interval": _interval(_difference(np.mean(boot_b, axis=0), np.mean(boot_a, axis=0)))}
     return {"detector_a": det_a, "detector_b": det_b, "mode": mode, "key": key, "n_boot": int(n_boot), "seed": int(seed),
             "sequences": out_seq, "overall": overall}
 
@@ -139,7 +124,14 @@ def _runs(rows: list[dict], values: np.ndarray) -> list[float | str]:
     return [float(v) if np.isfinite(v) else (r["status"] if r["status"] != "ok" else "no ATE") for r, v in zip(rows, values)]
 
 
+def _difference(b: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """``b - a`` of resampled medians; nan (no warning) where both are inf: neither side has a median."""
+    with np.errstate(invalid="ignore"):
+        return b - a
+
+
 def _finite(x: float) -> float | None:
+    """``x`` as a float, None where it is inf (no median) or nan (inf - inf: neither side has one)."""
     return float(x) if np.isfinite(x) else None
 
 
@@ -148,7 +140,7 @@ def _interval(diff: np.ndarray) -> list[float | None]:
     which one side has no median, half its runs failed, counts as an infinite difference). A bound is
     None (unbounded) when more than 2.5 % of the resamples are infinite that way. Resamples in which
     neither side has a median say nothing about the difference and are left out."""
-    diff = diff[~np.isnan(diff)]
+    diff = diff[~np.isnan(diff)]  # inf - inf
     if len(diff) == 0:
         return [None, None]
     lo, hi = np.percentile(diff, [2.5, 97.5], method="inverted_cdf")
