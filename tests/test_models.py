@@ -181,25 +181,31 @@ def test_partitions_round_trip_and_grid_is_dilated():
 
 
 def test_superlite_parameter_count():
-    net = build_model(_model_cfg("superlite"))
+    paper = build_model({**OmegaConf.to_container(_model_cfg("superlite")), "detector_pixel": None})
     conv = lambda ci, co, k: ci * co * k * k  # noqa: E731 - convs before BatchNorm have no bias
     bn = lambda c: 2 * c  # noqa: E731 - affine weight and bias
     encoder = conv(8, 64, 3) + bn(64) + conv(64, 64, 3) + bn(64) + conv(64, 128, 3) + bn(128) + conv(128, 128, 3) + bn(128)
     detector = conv(128, 256, 3) + bn(256) + 256 * 65 + 65
     descriptor = conv(128, 256, 3) + bn(256) + 256 * 64 + 64
-    assert count_parameters(net) == encoder + detector + descriptor == 887_425
+    assert count_parameters(paper) == encoder + detector + descriptor == 887_425
     # The paper says "about 0.9 M"; our count of its layer list is 0.887 M. 2 % tolerance covers
     # bias/BatchNorm bookkeeping conventions (conv biases before BN would add 0.1 %), while a
     # wrong width or layer (e.g. one more 128x128 conv: +17 %) fails.
-    assert abs(count_parameters(net) - 0.9e6) / 0.9e6 < 0.02
+    assert abs(count_parameters(paper) - 0.9e6) / 0.9e6 < 0.02
+    # model=superlite (the shipped network) adds the full-resolution detector branch, 16 wide, 3 deep:
+    # two conv+BN layers and a biased conv to one channel
+    branch = conv(8, 16, 3) + bn(16) + conv(16, 16, 3) + bn(16) + conv(16, 1, 3) + 1
+    assert count_parameters(build_model(_model_cfg("superlite"))) == 887_425 + branch == 891_090
 
 
 def test_superlite_flops_match_closed_form():
-    net = build_model(_model_cfg("superlite"))
     h, w = 240, 320
     macs = (h * w * 8 * 64 * 9 + (h // 2) * (w // 2) * 64 * 64 * 9 + (h // 4) * (w // 4) * 64 * 128 * 9
             + (h // 8) * (w // 8) * (128 * 128 * 9 + 2 * 128 * 256 * 9 + 256 * 65 + 256 * 64))
-    assert count_flops(net, (1, 8, h, w)) == 2 * macs
+    paper = build_model({**OmegaConf.to_container(_model_cfg("superlite")), "detector_pixel": None})
+    assert count_flops(paper, (1, 8, h, w)) == 2 * macs
+    branch_macs = h * w * (8 * 16 * 9 + 16 * 16 * 9 + 16 * 1 * 9)  # three 3x3 convs at full resolution
+    assert count_flops(build_model(_model_cfg("superlite")), (1, 8, h, w)) == 2 * (macs + branch_macs)
 
 
 def test_superevent_models_have_about_the_published_size():

@@ -143,7 +143,8 @@ def test_sweep_jobs_write_metrics(tmp_path, sim_cache, capsys):
         # deterministic validation code (seeded RANSAC) on the same weights, so equal up to float32 logging
         assert m["auc10"] == pytest.approx(summary["best_val_auc10"], abs=1e-4)
         assert 0 <= m["auc5"] <= m["auc10"] <= m["auc20"] <= 100  # AUC grows with the threshold
-        net = build_model({"name": "superlite", "encoder": "vgg_lite", "in_channels": 8, "descriptor_dim": dim})
+        net = build_model({"name": "superlite", "encoder": "vgg_lite", "in_channels": 8, "descriptor_dim": dim,
+                           "detector_pixel": {"width": 16, "depth": 3}})  # model=superlite's default
         assert m["parameters"] == count_parameters(net) and m["flops_input"] == [1, 8, 240, 424]
         assert m["flops"] == count_flops(net, (1, 8, 240, 424))
         assert m["latency_error"] is None and m["latency_ms"] > 0, m["latency_error"]

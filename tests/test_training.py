@@ -449,21 +449,29 @@ def test_fine_tuning_starts_from_the_given_weights(tmp_path, sim_cache):
         init_from_weights(build_model(plus), "superlite", plus)
 
 
-def test_pixel_detector_branch_starts_from_weights_without_it(capsys):
+def test_pixel_detector_branch_starts_from_weights_without_it(tmp_path, capsys):
     """init_weights of a network without model.detector_pixel into one with it: every loaded parameter is
     kept and the new branch starts at zero, so the outputs are the loaded network's exactly."""
     import torch
+    from omegaconf import OmegaConf
 
     from aerovis_train.benchmarks import compose_config
-    from aerovis_train.checkpoints import load_model
+    from aerovis_train.checkpoints import load_model, save_slim
     from aerovis_train.models import build_model
     from aerovis_train.training import init_from_weights
 
+    plain_cfg = compose_config(["model=superlite", "model.detector_pixel=null"]).model
+    plain = build_model(plain_cfg)
+    for m in plain.modules():  # non-trivial running statistics, so eval mode uses them
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.1, 0.1)
+            m.running_var.uniform_(0.5, 1.5)
+    start = save_slim(OmegaConf.to_container(plain_cfg, resolve=True), plain.state_dict(), tmp_path / "plain.pt")
     cfg = compose_config(["model=superlite", "model.detector_pixel={width:8,depth:2}"]).model
     net = build_model(cfg)
-    init_from_weights(net, "superlite", cfg)
+    init_from_weights(net, str(start), cfg)
     assert "new branch starts at zero" in capsys.readouterr().err
-    ship, _, _ = load_model("superlite")
+    ship, _, _ = load_model(start)
     net.eval()
     x = torch.rand(1, 8, 48, 64, generator=torch.Generator().manual_seed(0))
     with torch.no_grad():
@@ -493,10 +501,10 @@ def test_descriptor_only_fine_tune_keeps_the_keypoints(tmp_path, sim_cache):
     meta = torch.load(run / "model.pt", map_location="cpu", weights_only=False)["meta"]
     assert meta["train_only"] == ["descriptor"]
     bad = _train(tmp_path / "bad", "optim.train_only=[neck]", cache=sim_cache)
-    assert bad.returncode == 2 and "optim.train_only must name some of ['encoder', 'detector', 'descriptor']" in bad.stderr
+    assert bad.returncode == 2 and "optim.train_only must name some of ['encoder', 'detector', 'descriptor', 'detector_pixel']" in bad.stderr
     # without start weights the frozen parts would stay random: allowed, and said
     scratch = _train(tmp_path / "scratch", "optim.train_only=[descriptor]", "data.crop=[40,56]", "trainer.max_steps=1", cache=sim_cache)
-    assert scratch.returncode == 0 and "encoder, detector keep their random initialisation" in scratch.stderr
+    assert scratch.returncode == 0 and "encoder, detector, detector_pixel keep their random initialisation" in scratch.stderr
 
 
 def test_bad_training_input_is_explained(tmp_path):
