@@ -572,14 +572,35 @@ def test_initialisation_bundle_adjustment_corrects_the_alignments_gravity(bundle
     are the window and the landmarks move with the estimate. Without it the window is the newest
     frame alone, which keeps the 8 deg. The static-start fallback (gravity from the accelerometer's
     mean, no alignment velocities: all from the keyframe positions' slope, a 10 deg tilt prior) is
-    corrected the same way."""
+    corrected the same way.
+
+    The keyframes before the initialisation then go to the loop closer with the window's poses; the
+    first frame's keyframe, which the adjustment leaves out, does not (loop setting
+    ``unrefined_start_keyframes`` 0; with 1, here on the static start, it does, with its vision-only pose
+    turned into the world). Without the adjustment every keyframe keeps such a pose and all go."""
+    from aerovis_slam.keypoints import Keypoints
+    from aerovis_slam.slam.loop import DEFAULT_CONFIG
+
+    class RecordingCloser:  # what the odometry hands the loop closer
+        def __init__(self, **overrides):
+            self.config = dict(DEFAULT_CONFIG, **overrides)
+            self.keyframes = {}
+
+        def add_keyframe(self, kf_id, t_us, T_world_body, *rest):
+            self.keyframes[kf_id] = T_world_body.copy()
+
+        def add_odometry(self, *edge):
+            pass
+
+    keep_unrefined = int(start == "static")
     spec = SequenceSpec("ba", rig="davis240_stereo", trajectory="handheld", trajectory_seed=7, scene_seed=7, duration_s=1.2)
     sim = Simulator(spec)
     traj = sim.trajectory
     cfg = SlamConfig()
     cfg.init.bundle_adjustment = bundle_adjustment
     cams = StereoCameras.from_rig(sim.rig, max_width=424, max_height=240, size_multiple=1)
-    odo = StereoInertialOdometry(cams, ImuStream(sim.imu()), sim.rig.imu, cfg)
+    closer = RecordingCloser(unrefined_start_keyframes=keep_unrefined)
+    odo = StereoInertialOdometry(cams, ImuStream(sim.imu()), sim.rig.imu, cfg, loop_closer=closer)
     rng = np.random.default_rng(1)
     R_wv = so3_exp(np.radians([20.0, -10.0, 5.0]))  # the vision frame V (first body pose) in the world
     Rv = np.eye(4)
@@ -600,6 +621,11 @@ def test_initialisation_bundle_adjustment_corrects_the_alignments_gravity(bundle
         odo.preinit_window.append((k, t, T_v, Observations.concatenate(parts)))
     odo.kf_id = 7
     odo.t_first = t_kf[0] - 20_000  # the first frame's keyframe (not in the window) came before
+    T_first_v = Rv @ traj.pose_matrix(np.array([odo.t_first * 1e-6]))[0]
+    no_points = (Keypoints(np.zeros((0, 2), np.float32), np.zeros(0, np.float32), np.zeros((0, 8), np.float32)),
+                 np.zeros((0, 3)), np.zeros(0, bool))
+    odo.preinit_kfs = [(k, t, T_v, *no_points) for k, t, T_v in [(-1, odo.t_first, T_first_v)] +
+                       [(w[0], w[1], w[2]) for w in odo.preinit_window]]
     tau = t_kf[-1]
     v_v = {t: R_wv.T @ traj.position(np.array([t * 1e-6]), 1)[0] for t in t_kf[-3:]}
     odo.state = NavEstimate(odo.preinit_window[-1][2].copy(), v_v[tau], gtsam.imuBias.ConstantBias())
@@ -616,9 +642,15 @@ def test_initialisation_bundle_adjustment_corrects_the_alignments_gravity(bundle
         assert tilt < 1.0
         assert odo.smoother.kf_ids == list(range(8))
         assert not np.allclose(odo.lmap.pos[:len(lms)], pos_before @ R_wrong.T)
+        assert sorted(closer.keyframes) == ([-1] if keep_unrefined else []) + list(range(8))
+        for k in range(8):
+            assert np.array_equal(closer.keyframes[k], odo.smoother.estimates[k].T_world_body)
     else:
         assert tilt == pytest.approx(8.0, abs=0.5)
         assert odo.smoother.kf_ids == [8]
+        assert sorted(closer.keyframes) == [-1] + list(range(8))
+    if -1 in closer.keyframes:  # the vision-only pose, turned by the initialisation's gravity
+        assert np.allclose(closer.keyframes[-1][:3, :3], R_wrong @ T_first_v[:3, :3])
 
 
 def test_initialisation_window_velocity_prior_fits_its_centre():
@@ -1078,28 +1110,33 @@ def test_observation_lag_in_async_mode_keeps_outputs_ordered(small_flight):
     assert np.all(res.latency_ms >= np.asarray(res.stage_ms["total"]) - 1e-6)
 
 
-def test_keyframes_before_initialisation_reach_the_loop_closer(small_flight):
+@pytest.mark.parametrize("unrefined", [0, 1])
+def test_keyframes_before_initialisation_reach_the_loop_closer(small_flight, unrefined):
     """A sequence that ends where it began can only close its loop against its first keyframes,
     which are made before gravity is known: they wait and reach the loop closer at the
-    initialisation, in the world frame. Every keyframe of the frontend is in the loop closer's
-    database. The first frame's keyframe is at exactly the pose that was output at its time (both
-    are the vision-frame pose turned by the same gravity rotation); the later ones at the
-    initialisation window's re-estimate of it: moved, but by no more than the pre-initialisation
-    outputs' error (the 14 cm bound of the small-flight test, and the alignment's few degrees)."""
+    initialisation, in the world frame, at the initialisation window's re-estimate of their pose:
+    moved from what was output at their time, but by no more than the pre-initialisation outputs'
+    error (the 14 cm bound of the small-flight test, and the alignment's few degrees). The first
+    frame's keyframe, which that window leaves out, keeps a vision-only pose and is no candidate
+    (loop setting ``unrefined_start_keyframes`` 0); with 1 it is in the database too, at exactly the
+    pose that was output at its time (both are the vision-frame pose turned by the same gravity
+    rotation). Every other keyframe of the frontend is in the loop closer's database."""
     from aerovis_slam.slam.loop import LoopCloser
 
-    with LoopCloser() as closer:
+    with LoopCloser(config={"unrefined_start_keyframes": unrefined}) as closer:
         res = run_slam(small_flight, StereoClassicalDetector("orb", 300), load_config("accurate"), mode="sync",
                        loop_closer=closer, progress=False)
         kfs = [closer._keyframes[i] for i in closer._order]
-        assert res.status == "ok" and closer.summary()["keyframes"] == res.keyframes
+        assert res.status == "ok" and closer.summary()["keyframes"] == res.keyframes - (1 - unrefined)
     t_init = res.info["t_initialized_us"]
+    t_first = int(res.t_us[0])  # the first output is the first frame's
     pre = [k for k in kfs if k.t_us < t_init]
     assert pre and [k.t_us for k in kfs] == sorted(k.t_us for k in kfs)
-    assert len(pre) >= 2  # the first frame's keyframe and at least one later: both branches below
-    for j, k in enumerate(pre):
+    assert (pre[0].t_us == t_first) == bool(unrefined)
+    assert len([k for k in pre if k.t_us != t_first]) >= 1  # and at least one later keyframe
+    for k in pre:
         T_out = pose7_to_matrix(res.pose7[int(np.flatnonzero(res.t_us == k.t_us)[0])])
-        if j == 0:
+        if k.t_us == t_first:
             np.testing.assert_allclose(k.T_odom, T_out, atol=1e-9)
         else:
             assert not np.allclose(k.T_odom, T_out, atol=1e-6)

@@ -96,6 +96,9 @@ DEFAULT_CONFIG: dict = {
     "cooldown_keyframes": 5,  # after a closure, keyframes without loop search (same place again)
     "online_vocabulary_keyframes": 5,  # without a vocabulary: learn one from the first N keyframes
     "words": 64,  # vocabulary size when learnt online
+    # keyframes from before the initialisation that its bundle adjustment did not estimate (the first
+    # frame's; 1: candidates too, as before 2026-12-06). Read by the odometry, which hands keyframes over
+    "unrefined_start_keyframes": 0,
     # verification
     "min_inliers": 10,  # OKVIS2's
     "min_inlier_ratio": 0.25,
