@@ -28,6 +28,8 @@ from aerovis_train.models import (
 )
 from aerovis_train.models.encoders import grid_partition, grid_reverse, window_partition, window_reverse
 
+from conftest import randomise_batchnorm
+
 
 def _model_cfg(name: str):
     return OmegaConf.load(CONF_DIR / "model" / f"{name}.yaml")
@@ -38,15 +40,6 @@ def _tiny(encoder: str, in_channels: int = 8, descriptor_dim: int = 32, **encode
                         "in_channels": in_channels, "descriptor_dim": descriptor_dim, "head_width": 32})
 
 
-def _randomise_batchnorm(net: torch.nn.Module, seed: int = 0) -> None:
-    """Non-trivial running statistics, so eval-mode BatchNorm (and its folding on export) is exercised."""
-    g = torch.Generator().manual_seed(seed)
-    for m in net.modules():
-        if isinstance(m, torch.nn.BatchNorm2d):
-            m.running_mean.copy_(0.1 * torch.randn(m.num_features, generator=g))
-            m.running_var.copy_(0.5 + torch.rand(m.num_features, generator=g))
-
-
 # ---------------------------------------------------------------------------------------------
 # Outputs
 # ---------------------------------------------------------------------------------------------
@@ -55,7 +48,7 @@ def _randomise_batchnorm(net: torch.nn.Module, seed: int = 0) -> None:
 def test_outputs_shapes_and_ranges():
     torch.manual_seed(0)
     net = build_model(_model_cfg("superlite")).eval()
-    _randomise_batchnorm(net)
+    randomise_batchnorm(net)
     x = torch.rand(2, 8, 32, 48)
     with torch.no_grad():
         out = net(x)
@@ -104,7 +97,7 @@ def test_pixel_detector_branch_starts_at_zero_and_follows_the_cell_convention():
     # model.detector_pixel: full-resolution logits added to the cell head's 64 positions
     torch.manual_seed(0)
     plain = _tiny("vgg_lite").eval()
-    _randomise_batchnorm(plain)
+    randomise_batchnorm(plain)
     cfg = {"name": "tiny_vgg_lite", "encoder": "vgg_lite", "in_channels": 8, "descriptor_dim": 32, "head_width": 32}
     branch = build_model({**cfg, "detector_pixel": {"width": 8, "depth": 1}}).eval()
     state = plain.state_dict()
@@ -135,7 +128,7 @@ def test_pixel_detector_within_cell_moves_keypoints_but_keeps_each_cells_mass():
     torch.manual_seed(0)
     cfg = {"name": "tiny_vgg_lite", "encoder": "vgg_lite", "in_channels": 8, "descriptor_dim": 32, "head_width": 32}
     net = build_model({**cfg, "detector_pixel": {"width": 8, "depth": 1, "within_cell": True}}).eval()
-    _randomise_batchnorm(net)
+    randomise_batchnorm(net)
     x = torch.rand(2, 8, 16, 24)
     with torch.no_grad():
         before = net(x)["scores"]
@@ -346,7 +339,7 @@ def _export_and_compare(net: KeypointNet, shape: tuple[int, int, int, int]) -> N
     onnx = pytest.importorskip("onnx", reason="onnx is not installed (pip install onnx)")
     ort = pytest.importorskip("onnxruntime", reason="onnxruntime is not installed")
     net.eval()
-    _randomise_batchnorm(net)
+    randomise_batchnorm(net)
     x = torch.rand(shape)
     net.check_input(x)
     wrapper = ExportWrapper(net)

@@ -624,8 +624,7 @@ def test_initialisation_bundle_adjustment_corrects_the_alignments_gravity(bundle
     T_first_v = Rv @ traj.pose_matrix(np.array([odo.t_first * 1e-6]))[0]
     no_points = (Keypoints(np.zeros((0, 2), np.float32), np.zeros(0, np.float32), np.zeros((0, 8), np.float32)),
                  np.zeros((0, 3)), np.zeros(0, bool))
-    odo.preinit_kfs = [(k, t, T_v, *no_points) for k, t, T_v in [(-1, odo.t_first, T_first_v)] +
-                       [(w[0], w[1], w[2]) for w in odo.preinit_window]]
+    odo.preinit_kfs = [(-1, odo.t_first, T_first_v, *no_points)] + [(k, t, T_v, *no_points) for k, t, T_v, _ in odo.preinit_window]
     tau = t_kf[-1]
     v_v = {t: R_wv.T @ traj.position(np.array([t * 1e-6]), 1)[0] for t in t_kf[-3:]}
     odo.state = NavEstimate(odo.preinit_window[-1][2].copy(), v_v[tau], gtsam.imuBias.ConstantBias())

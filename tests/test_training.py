@@ -25,7 +25,7 @@ from aerovis_train.correspondences import (  # noqa: E402
 from aerovis_train.labels import CornerLabeller, cell_labels, cross_view_consistent, soft_cell_labels  # noqa: E402
 from aerovis_train.losses import descriptor_loss_depth, descriptor_loss_dual_softmax, descriptor_loss_epipolar, detector_loss  # noqa: E402
 
-from conftest import REPO_ROOT  # noqa: E402
+from conftest import REPO_ROOT, randomise_batchnorm  # noqa: E402
 
 K = np.array([[100.0, 0, 47.5], [0, 100, 31.5], [0, 0, 1]])
 W, H = 96, 64
@@ -462,10 +462,7 @@ def test_pixel_detector_branch_starts_from_weights_without_it(tmp_path, capsys):
 
     plain_cfg = compose_config(["model=superlite", "model.detector_pixel=null"]).model
     plain = build_model(plain_cfg)
-    for m in plain.modules():  # non-trivial running statistics, so eval mode uses them
-        if isinstance(m, torch.nn.BatchNorm2d):
-            m.running_mean.uniform_(-0.1, 0.1)
-            m.running_var.uniform_(0.5, 1.5)
+    randomise_batchnorm(plain)
     start = save_slim(OmegaConf.to_container(plain_cfg, resolve=True), plain.state_dict(), tmp_path / "plain.pt")
     cfg = compose_config(["model=superlite", "model.detector_pixel={width:8,depth:2}"]).model
     net = build_model(cfg)

@@ -156,6 +156,9 @@ def format_comparison(result: dict, label_a: str = "A", label_b: str = "B") -> s
     def runs(xs):
         return ", ".join(x if isinstance(x, str) else num(x) for x in xs)
 
+    def signed(x):
+        return "n/a" if x is None else f"{x:+.2f}"
+
     def ci(iv):
         return " to ".join("unbounded" if x is None else f"{x:+.2f}" for x in iv)
 
@@ -166,11 +169,9 @@ def format_comparison(result: dict, label_a: str = "A", label_b: str = "B") -> s
              f"| sequence | {label_a} runs | {label_b} runs | median {label_a} | median {label_b} | difference | 95 % interval | {label_b} lower in |",
              "|---|---|---|---:|---:|---:|---|---:|"]
     for r in result["sequences"]:
-        d = "n/a" if r["difference"] is None else f"{r['difference']:+.2f}"
         lines.append(f"| {r['sequence']} | {runs(r['runs_a'])} | {runs(r['runs_b'])} | {num(r['median_a'])} | {num(r['median_b'])} "
-                     f"| {d} | {ci(r['interval'])} | {100 * r['b_lower']:.0f} % |")
+                     f"| {signed(r['difference'])} | {ci(r['interval'])} | {100 * r['b_lower']:.0f} % |")
     o = result["overall"]
-    d = "n/a" if o["difference"] is None else f"{o['difference']:+.2f}"
     lines.append(f"| mean over {len(result['sequences'])} sequences | | | {num(o['mean_of_medians_a'])} | "
-                 f"{num(o['mean_of_medians_b'])} | {d} | {ci(o['interval'])} | |")
+                 f"{num(o['mean_of_medians_b'])} | {signed(o['difference'])} | {ci(o['interval'])} | |")
     return "\n".join(lines) + "\n"
