@@ -325,8 +325,9 @@ def test_initialisation_fallback_takes_gravity_from_the_velocity_change():
 @pytest.mark.parametrize("span_s,starts", [(0.94, True), (0.6, False)])
 def test_velocity_change_initialisation(span_s, starts):
     """``init.gravity: velocity_change``: once tracking spans ``velocity_change_s`` (0.8 s here) the
-    smoother starts with that gravity (exact poses: within 0.2 deg, as its unit test); before, it
-    waits."""
+    smoother starts with that gravity (exact poses: within 0.2 deg, as its unit test) and a roll and
+    pitch prior of the estimate's own sigma, floored at ``backend.prior_rollpitch_deg`` (not the
+    static start's 5 deg); before, it waits."""
     sim = _tiny_sim(imu_noise=True)
     traj = sim.trajectory
     cfg = SlamConfig()
@@ -341,10 +342,15 @@ def test_velocity_change_initialisation(span_s, starts):
     odo.t_first = t_us[0]
     odo.preinit_frames = [(ti, Ti, True) for ti, Ti in zip(t_us, T_v)]
     odo.state = NavEstimate(T_v[-1].copy(), T[0][:3, :3].T @ traj.position(t[-1:], 1)[0], gtsam.imuBias.ConstantBias())
+    est = odo._velocity_change_gravity()
+    priors = []
+    initialize = odo.smoother.initialize
+    odo.smoother.initialize = lambda *a, **kw: (priors.append(kw["sigma_rollpitch_rad"]), initialize(*a, **kw))
     odo._try_initialize(t_us[-1], None, None)
     assert odo.initialized is starts
     if starts:
         assert _tilt_deg(odo.state.T_world_body[:3, :3], T[-1][:3, :3]) < 0.2
+        assert priors == [pytest.approx(np.radians(max(cfg.backend.prior_rollpitch_deg, est.tilt_sigma_deg)))]
 
 
 # -- the estimator on exact data -------------------------------------------------------------------
