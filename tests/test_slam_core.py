@@ -581,31 +581,34 @@ def test_initialisation_bundle_adjustment_corrects_the_alignments_gravity(bundle
     corrected the same way.
 
     The keyframes before the initialisation then go to the loop closer with the window's poses; the
-    first frame's keyframe, which the adjustment leaves out, does not (loop setting
-    ``unrefined_start_keyframes`` 0; with 1, here on the static start, it does, with its vision-only pose
-    turned into the world). Without the adjustment every keyframe keeps such a pose and all go."""
+    first frame's keyframe, which the adjustment leaves out, goes with its vision-only pose turned
+    into the world and marked unrefined (the loop closer's setting ``unrefined_start_keyframes``
+    decides on it, test_keyframes_before_initialisation_reach_the_loop_closer). Without the
+    adjustment every keyframe keeps such a pose, and none is marked."""
     from aerovis_slam.keypoints import Keypoints
     from aerovis_slam.slam.loop import DEFAULT_CONFIG
 
-    class RecordingCloser:  # what the odometry hands the loop closer
-        def __init__(self, **overrides):
-            self.config = dict(DEFAULT_CONFIG, **overrides)
-            self.keyframes = {}
+    class RecordingCloser:  # what the odometry hands the loop closer (it takes every keyframe)
+        def __init__(self):
+            self.config = dict(DEFAULT_CONFIG)
+            self.keyframes, self.unrefined = {}, set()
 
-        def add_keyframe(self, kf_id, t_us, T_world_body, *rest):
+        def add_keyframe(self, kf_id, t_us, T_world_body, *rest, unrefined=False):
             self.keyframes[kf_id] = T_world_body.copy()
+            if unrefined:
+                self.unrefined.add(kf_id)
+            return True
 
         def add_odometry(self, *edge):
             pass
 
-    keep_unrefined = int(start == "static")
     spec = SequenceSpec("ba", rig="davis240_stereo", trajectory="handheld", trajectory_seed=7, scene_seed=7, duration_s=1.2)
     sim = Simulator(spec)
     traj = sim.trajectory
     cfg = SlamConfig()
     cfg.init.bundle_adjustment = bundle_adjustment
     cams = StereoCameras.from_rig(sim.rig, max_width=424, max_height=240, size_multiple=1)
-    closer = RecordingCloser(unrefined_start_keyframes=keep_unrefined)
+    closer = RecordingCloser()
     odo = StereoInertialOdometry(cams, ImuStream(sim.imu()), sim.rig.imu, cfg, loop_closer=closer)
     rng = np.random.default_rng(1)
     R_wv = so3_exp(np.radians([20.0, -10.0, 5.0]))  # the vision frame V (first body pose) in the world
@@ -647,15 +650,16 @@ def test_initialisation_bundle_adjustment_corrects_the_alignments_gravity(bundle
         assert tilt < 1.0
         assert odo.smoother.kf_ids == list(range(8))
         assert not np.allclose(odo.lmap.pos[:len(lms)], pos_before @ R_wrong.T)
-        assert sorted(closer.keyframes) == ([-1] if keep_unrefined else []) + list(range(8))
+        assert closer.unrefined == {-1}
         for k in range(8):
             assert np.array_equal(closer.keyframes[k], odo.smoother.estimates[k].T_world_body)
     else:
         assert tilt == pytest.approx(8.0, abs=0.5)
         assert odo.smoother.kf_ids == [8]
-        assert sorted(closer.keyframes) == [-1] + list(range(8))
-    if -1 in closer.keyframes:  # the vision-only pose, turned by the initialisation's gravity
-        assert np.allclose(closer.keyframes[-1][:3, :3], R_wrong @ T_first_v[:3, :3])
+        assert closer.unrefined == set()
+    assert sorted(closer.keyframes) == [-1] + list(range(8))
+    # the first frame's keyframe: the vision-only pose, turned by the initialisation's gravity
+    assert np.allclose(closer.keyframes[-1][:3, :3], R_wrong @ T_first_v[:3, :3])
 
 
 def test_initialisation_window_velocity_prior_fits_its_centre():

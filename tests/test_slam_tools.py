@@ -319,6 +319,18 @@ def test_loop_closure_corrects_drift_in_background(vocabulary):
                             np.zeros(0, bool), K, T_BODY_CAM)
 
 
+@pytest.mark.parametrize("setting", [0, 1])
+def test_unrefined_keyframes_follow_the_loop_setting(setting):
+    """A keyframe the caller marks ``unrefined`` (a vision-only pose beside a re-estimated map) is
+    added only with ``unrefined_start_keyframes`` 1; ``add_keyframe`` says whether it was, and an
+    ordinary keyframe is added either way."""
+    empty = (Keypoints(np.zeros((0, 2)), np.zeros(0), np.zeros((0, 64))), np.zeros((0, 3)), np.zeros(0, bool), K, T_BODY_CAM)
+    with LoopCloser(config={"unrefined_start_keyframes": setting}) as closer:
+        assert closer.add_keyframe(0, 0, np.eye(4), *empty, unrefined=True) is bool(setting)
+        assert closer.add_keyframe(1, 100_000, np.eye(4), *empty) is True
+        assert closer._order == ([0] if setting else []) + [1]
+
+
 def test_split_yaw_keeps_gravity_direction_for_any_mounting():
     rng = np.random.default_rng(3)
     x_up = np.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])  # body x along world z (EuRoC's IMU): no yaw-pitch-roll yaw
@@ -484,14 +496,14 @@ class _RefinedLater(LoopCloser):
         super().__init__(*args, **kwargs)
         self.n_bad, self.refine_at, self.true_points = n_bad, refine_at, {}
 
-    def add_keyframe(self, kf_id, t_us, T_world_body, keypoints, points_body, point_valid, K_, T_body_cam):
+    def add_keyframe(self, kf_id, t_us, T_world_body, keypoints, points_body, point_valid, K_, T_body_cam, **kw):
         if kf_id < self.n_bad:
             self.true_points[kf_id] = points_body.copy()
             points_body = np.roll(points_body, 7, axis=0)
         if kf_id == self.refine_at:
             for k, pts in self.true_points.items():
                 self.update_points(k, np.arange(len(pts)), pts)
-        super().add_keyframe(kf_id, t_us, T_world_body, keypoints, points_body, point_valid, K_, T_body_cam)
+        return super().add_keyframe(kf_id, t_us, T_world_body, keypoints, points_body, point_valid, K_, T_body_cam, **kw)
 
 
 def test_update_points_feeds_loop_verification(vocabulary):

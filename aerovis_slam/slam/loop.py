@@ -96,8 +96,8 @@ DEFAULT_CONFIG: dict = {
     "cooldown_keyframes": 5,  # after a closure, keyframes without loop search (same place again)
     "online_vocabulary_keyframes": 5,  # without a vocabulary: learn one from the first N keyframes
     "words": 64,  # vocabulary size when learnt online
-    # keyframes from before the initialisation that its bundle adjustment did not estimate (the first
-    # frame's; 1: candidates too, as before 2026-12-06). Read by the odometry, which hands keyframes over
+    # keyframes the caller marks unrefined (add_keyframe): from before the odometry's initialisation,
+    # left out by its bundle adjustment (the first frame's). 0: not added; 1: added, as before 2026-12-06
     "unrefined_start_keyframes": 0,
     # verification
     "min_inliers": 10,  # OKVIS2's
@@ -474,7 +474,8 @@ class LoopCloser:
 
     # -- input ---------------------------------------------------------------------------------
     def add_keyframe(self, kf_id: int, t_us: int, T_world_body: np.ndarray, keypoints: Keypoints,
-                     points_body: np.ndarray, point_valid: np.ndarray, K: np.ndarray, T_body_cam: np.ndarray) -> None:
+                     points_body: np.ndarray, point_valid: np.ndarray, K: np.ndarray, T_body_cam: np.ndarray, *,
+                     unrefined: bool = False) -> bool:
         """Add a keyframe and search it for a loop (synchronous, a few ms); a verified loop starts
         a background pose-graph optimisation.
 
@@ -488,11 +489,22 @@ class LoopCloser:
                 ``point_valid`` (N,) is True.
             K: (3, 3) left camera matrix of the keypoints' pixel coordinates (undistorted).
             T_body_cam: (4, 4) left camera extrinsic (camera to body).
+            unrefined: the pose is vision-only beside a map the caller has re-estimated since (the
+                odometry's first frame's keyframe, which its initialisation's bundle adjustment
+                leaves out). Loops measured against such a keyframe were 0.1-0.3 m off where the
+                true drift was 3-9 cm (drone8_lit, bench preset), and the drift bound let them
+                through; so it is not added unless the setting ``unrefined_start_keyframes`` is 1.
+
+        Returns:
+            Whether the keyframe was added (only an added one takes :meth:`add_odometry` edges and
+            :meth:`update_points`).
         """
         if self._closed:
             raise RuntimeError("LoopCloser is closed")
         if kf_id in self._keyframes:
             raise ValueError(f"keyframe id {kf_id} added twice")
+        if unrefined and not self.config["unrefined_start_keyframes"]:
+            return False
         t_start = time.perf_counter()
         T = np.asarray(T_world_body, np.float64)
         pts = np.asarray(points_body, np.float64).reshape(-1, 3)
@@ -513,6 +525,7 @@ class LoopCloser:
         if kf.vlad is not None:
             self._detect(kf)
         self.timings["loop_detection"].append((time.perf_counter() - t_start) * 1e3)
+        return True
 
     def update_points(self, kf_id: int, rows: np.ndarray, points_body: np.ndarray) -> None:
         """Replace landmarks of keyframe ``kf_id`` by better estimates (the smoother's, once later

@@ -724,11 +724,14 @@ class StereoInertialOdometry:
         self.kf_loop_rows[kf] = (kp_idx, lm_idx)
         self._add_loop_keyframe(kf, int(tau), T_wb, kpL, pts_body, valid)
 
-    def _add_loop_keyframe(self, kf, tau, T_wb, kpL, pts_body, valid) -> None:
+    def _add_loop_keyframe(self, kf, tau, T_wb, kpL, pts_body, valid, *, unrefined: bool = False) -> None:
+        """Hand keyframe ``kf`` to the loop closer and chain it to the previous one it took
+        (``unrefined``: see :meth:`aerovis_slam.slam.loop.LoopCloser.add_keyframe`)."""
         prev = max(self.kf_odom) if self.kf_odom else None
+        if not self.loop_closer.add_keyframe(kf, tau, T_wb.copy(), kpL, pts_body, valid, self.cams.left.K.copy(),
+                                             self.cams.left.T_body_cam.copy(), unrefined=unrefined):
+            return
         self.kf_odom[kf] = T_wb.copy()
-        self.loop_closer.add_keyframe(kf, tau, T_wb.copy(), kpL, pts_body, valid, self.cams.left.K.copy(),
-                                      self.cams.left.T_body_cam.copy())
         if prev is not None:
             self.loop_closer.add_odometry(prev, kf, invert_T(self.kf_odom[prev]) @ T_wb)
 
@@ -888,21 +891,18 @@ class StereoInertialOdometry:
         self.init_frames = []
         self.preinit_frames = []
         if self.loop_closer is not None:
-            keep_unrefined = bool(self.loop_closer.config["unrefined_start_keyframes"])
             for kf, t_kf, T_vb, kp, pts_body, valid in self.preinit_kfs:
                 # their landmarks as triangulated then: refining them with the smoother's later
                 # estimates (as for the window's keyframes) was measured worse (four-run means of
                 # the drone flights' final ATE 0.93 / 1.12 % instead of 0.82 / 0.89 %)
                 est = self.smoother.estimates.get(kf)
-                if started and est is None and not keep_unrefined:
-                    # a keyframe the initialisation's bundle adjustment left out (the first frame's,
-                    # whose long MCTS windows were still empty, and any older than the window) keeps a
-                    # vision-only pose beside the re-estimated ones: loops measured against it were
-                    # 0.1-0.3 m off where the true drift was 3-9 cm (drone8_lit, bench preset), so it
-                    # is no loop candidate (without that adjustment every one of them keeps such a
-                    # pose and all are handed over, as before)
-                    continue
-                self._add_loop_keyframe(kf, t_kf, Rh @ T_vb if est is None else est.T_world_body, kp, pts_body, valid)
+                # a keyframe the initialisation's bundle adjustment left out (the first frame's, whose
+                # long MCTS windows were still empty, and any older than the window) keeps a
+                # vision-only pose beside the re-estimated ones: unrefined, which the loop closer's
+                # setting ``unrefined_start_keyframes`` decides on (without that adjustment every
+                # one of them keeps such a pose and none is marked: there is no other map)
+                self._add_loop_keyframe(kf, t_kf, Rh @ T_vb if est is None else est.T_world_body, kp, pts_body, valid,
+                                        unrefined=started and est is None)
         self.preinit_kfs = []
         self.preinit_window = []
 
