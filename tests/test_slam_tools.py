@@ -900,6 +900,19 @@ def test_bench_repeats_perturb_and_aggregate(tmp_path, monkeypatch, empty_config
     assert "--repeats 2" in capsys.readouterr().err
 
 
+def test_bench_refuses_a_bad_settings_file_before_any_run(tmp_path, monkeypatch):
+    """A settings file the loader refuses stops the benchmark at once with the loader's message (file
+    and field), instead of one "failed" cell per run; nothing is written."""
+    seq = _tiny_sequence(tmp_path / "tiny_a.h5")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("init:\n  gravity: velocity_change\n  velocity_change_s: 0.5\n")
+    monkeypatch.setattr(bench_mod, "_run_slam", lambda *a, **kw: pytest.fail("no run may start"))
+    with pytest.raises(DataError, match=r"bad\.yaml.*init\.velocity_change_s must be at least 0\.8"):
+        bench_mod.run_bench([seq], [types.SimpleNamespace(name="learned")], tmp_path / "b", modes=("sync",),
+                            config=str(bad), loop=False, progress=False)
+    assert not (tmp_path / "b").exists()
+
+
 def test_bench_median_counts_failures_as_worst():
     """The paper's Table I: the median of 5 runs, failed when at least 3 crash or diverge."""
     def runs(*pcts):

@@ -317,6 +317,8 @@ def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str 
         from .oracle import check_diagnostics
 
         check_diagnostics(oracle_noise_px, keypoint_errors)
+    for mode in modes:  # a bad settings file refuses the whole benchmark (DataError: file, field), not each run
+        load_config(config or MODE_CONFIG[mode])
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     software = software_versions()  # each run's metrics.json has its own; a resumed run may come from another environment
