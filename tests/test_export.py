@@ -23,6 +23,7 @@ onnx = pytest.importorskip("onnx", reason="export needs the train extra (onnx)")
 pytest.importorskip("onnxscript", reason="export needs the train extra (onnxscript)")
 
 from aerovis_export import cli  # noqa: E402
+from aerovis_export.onnx_tools import head_output_convolutions, postprocess_nodes  # noqa: E402
 from aerovis_slam.bundle import Bundle, BundleDetector, default_bundle_path, file_sha256, synthetic_mcts  # noqa: E402
 from aerovis_slam.errors import DataError  # noqa: E402
 from aerovis_slam.keypoints import cosine_similarity  # noqa: E402
@@ -299,8 +300,25 @@ def test_int8_ptq_tensorrt_bundle_is_symmetric(tiny, tmp_path, frames):
     assert (q["method"], b.target) == ("ptq", "tensorrt") and b.parity == {"computed": False, "reason": "no parity data given (--no-parity)"}
     assert q["nonzero_zero_points"] == 0 and q["activation_types"] == ["int8"] and q["weight_types"] == ["int8"]
     assert any("softmax" in n for n in q["kept_float"]) and any("norm" in n for n in q["kept_float"])
+    # each head's last convolution keeps float weights (no DequantizeLinear makes them), every other one is quantised
+    model = onnx.load(str(out / "model.onnx"))
+    producers = {o: n.op_type for n in model.graph.node for o in n.output}
+    convs = [n for n in model.graph.node if n.op_type == "Conv"]
+    float_convs = {n.name for n in convs if producers.get(n.input[1]) != "DequantizeLinear"}
+    assert float_convs == {n for n in q["kept_float"] if n in {c.name for c in convs}} and len(float_convs) == 3
+    assert len(convs) - len(float_convs) == 8  # the shipped SuperLitE's 11: encoder 4, heads' first 2, branch's first 2
     rep, cos = _repeatability(out, frames)
     assert rep >= 0.75 and cos >= 0.98  # 0.87 and 0.9998 observed for PTQ on tiny (symmetric int8 of every convolution)
+
+
+def test_head_output_convolutions_of_the_shipped_superlite():
+    """The default bundle's graph (SuperLitE with the full-resolution branch): the convolutions that feed
+    the post-processing tail are the three heads' output layers, named by their weights."""
+    model = onnx.load(str(default_bundle_path() / "model.onnx"))
+    names = head_output_convolutions(model, postprocess_nodes(model))
+    weights = {n.name: n.input[1] for n in model.graph.node if n.op_type == "Conv"}
+    assert sorted(weights[n] for n in names) == ["net.descriptor.out.weight", "net.detector.out.weight",
+                                                 "net.detector_pixel.out.weight"]
 
 
 def test_tensorrt_engine_builds(fp32_bundle, tmp_path):

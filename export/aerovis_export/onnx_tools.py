@@ -154,6 +154,14 @@ def postprocess_nodes(model: onnx.ModelProto) -> list[str]:
     return [n.name for n in model.graph.node if n.name in seen]
 
 
+def head_output_convolutions(model: onnx.ModelProto, tail: list[str]) -> list[str]:
+    """Names of the convolutions whose outputs feed the post-processing ``tail`` (node names, as
+    :func:`postprocess_nodes` returns them): each head's last convolution, whose outputs are the
+    logits and raw descriptors themselves."""
+    feeds = {i for n in model.graph.node if n.name in tail for i in n.input}
+    return [n.name for n in model.graph.node if n.op_type in _HEAD_OPS and set(n.output) & feeds]
+
+
 def ensure_node_names(model: onnx.ModelProto) -> onnx.ModelProto:
     """Give every unnamed node a unique name (block lists and quantiser exclusions go by name)."""
     used = {n.name for n in model.graph.node if n.name}
