@@ -353,6 +353,43 @@ def test_velocity_change_initialisation(span_s, starts):
         assert priors == [pytest.approx(np.radians(max(cfg.backend.prior_rollpitch_deg, est.tilt_sigma_deg)))]
 
 
+@pytest.mark.parametrize("check", [True, False])
+def test_late_alignment_takes_the_more_certain_velocity_change_gravity(monkeypatch, check):
+    """``init.velocity_change_check``: an alignment accepted after 0.94 s of tracking, 8 deg off
+    gravity with a claimed sigma of 3 deg (its sigma is a lower bound), gives way to the velocity
+    change over those frames (exact poses: sigma near 0, within 0.2 deg), its velocities kept; without
+    the check the start keeps the 8 deg."""
+    import aerovis_slam.slam.odometry as odometry_mod
+    from aerovis_slam.slam.imu import Alignment
+
+    sim = _tiny_sim(imu_noise=True)
+    traj = sim.trajectory
+    cfg = SlamConfig()
+    cfg.init.velocity_change_check = check
+    cams = StereoCameras.from_rig(sim.rig, max_width=424, max_height=240, size_multiple=1)
+    odo = StereoInertialOdometry(cams, ImuStream(sim.imu()), sim.rig.imu, cfg)
+    t = np.arange(0.02, 0.96 + 1e-9, 0.02)
+    T = traj.pose_matrix(t)
+    T_v = np.linalg.inv(T[0]) @ T
+    R_wv = T[0][:3, :3]  # world <- vision (up to yaw)
+    t_us = [int(round(ti * 1e6)) for ti in t]
+    v_v = (R_wv.T @ traj.position(t, 1).T).T
+    odo.t_first = t_us[0]
+    odo.preinit_frames = [(ti, Ti, True) for ti, Ti in zip(t_us, T_v)]
+    odo.init_frames = [(ti, Ti) for ti, Ti in zip(t_us, T_v)]
+    odo.state = NavEstimate(T_v[-1].copy(), v_v[-1], gtsam.imuBias.ConstantBias())
+    wrong = so3_exp(np.radians([8.0, 0.0, 0.0])) @ R_wv
+    monkeypatch.setattr(odometry_mod, "align_visual_inertial", lambda t, T, stream, params: Alignment(
+        wrong, v_v.copy(), np.zeros(3), 9.81, 0.01, tilt_sigma_deg=3.0, velocity_sigma=0.1))
+    odo._try_initialize(t_us[-1], None, None)
+    assert odo.initialized
+    tilt = _tilt_deg(odo.state.T_world_body[:3, :3], T[-1][:3, :3])
+    if check:
+        assert tilt < 0.2
+    else:
+        assert tilt == pytest.approx(8.0, abs=0.5)
+
+
 # -- the estimator on exact data -------------------------------------------------------------------
 def _handheld_tracking_setup():
     """A 1.2 s handheld trajectory of the DAVIS stereo rig with its noisy IMU, for the tracking tests:

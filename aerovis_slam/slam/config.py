@@ -327,6 +327,12 @@ class InitConfig:
             landmarks: with 12 required, handheld_office (bench preset) propagated its first 14 frames
             with a zero velocity, and the alignment started from them (SuperLitE sync 3.92 % -> 2.45 %
             with 6).
+        velocity_change_check: when an alignment is accepted after tracking has spanned enough for
+            the velocity-change estimate (about 0.8 s), the start takes that estimate's gravity
+            where its tilt sigma is the smaller (the alignment's sigma is a lower bound: on
+            handheld_office, bench preset, alignments accepted at 2-3 deg sigma were 3-5 deg off;
+            docs/slam.md). Alignments accepted earlier are unaffected. On in ``accurate``; off in
+            ``realtime`` (not measured in async).
         bundle_adjustment: start the smoother with the keyframes tracked before the
             initialisation (up to ``backend.window_keyframes``, not the first frame's: their IMU
             factors and observations, VINS-Mono's visual-inertial bundle adjustment after the
@@ -343,6 +349,7 @@ class InitConfig:
     max_tilt_sigma_deg: float = 6.0
     max_velocity_sigma: float = 0.3
     min_position_inliers: int = 6
+    velocity_change_check: bool = False
     bundle_adjustment: bool = True
 
 
