@@ -913,6 +913,28 @@ def test_bench_refuses_a_bad_settings_file_before_any_run(tmp_path, monkeypatch)
     assert not (tmp_path / "b").exists()
 
 
+def test_bench_settings_are_read_once(tmp_path, monkeypatch):
+    """Every run of a benchmark gets the settings as they were when it started: the file rewritten
+    during the first run (here with a key the loader refuses) changes nothing, and each run gets its
+    own copy (repeat 1's keypoint noise does not reach repeat 0's object)."""
+    seq = _tiny_sequence(tmp_path / "tiny_a.h5")
+    settings = tmp_path / "s.yaml"
+    settings.write_text("backend:\n  pixel_sigma: 1.25\n")
+    seen = []
+
+    def runner(sequence, detector, config, **kw):
+        seen.append(config)
+        settings.write_text("backend:\n  no_such_key: 1\n")
+        return _fake_runner()(sequence, detector, config, **kw)
+
+    monkeypatch.setattr(bench_mod, "_run_slam", runner)
+    rows = bench_mod.run_bench([seq], [types.SimpleNamespace(name="learned")], tmp_path / "b", modes=("sync",),
+                               config=str(settings), loop=False, progress=False, repeats=2)
+    assert [r["status"] for r in rows] == ["ok", "ok"]
+    assert [c.backend.pixel_sigma for c in seen] == [1.25, 1.25]
+    assert seen[0] is not seen[1] and seen[0].detector.keypoint_noise_px == 0.0 < seen[1].detector.keypoint_noise_px
+
+
 def test_bench_median_counts_failures_as_worst():
     """The paper's Table I: the median of 5 runs, failed when at least 3 crash or diverge."""
     def runs(*pcts):

@@ -23,6 +23,7 @@ but chaotic, and on handheld sequences one run can be off by a factor of two fro
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import os
@@ -317,8 +318,9 @@ def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str 
         from .oracle import check_diagnostics
 
         check_diagnostics(oracle_noise_px, keypoint_errors)
-    for mode in modes:  # a bad settings file refuses the whole benchmark (DataError: file, field), not each run
-        load_config(config or MODE_CONFIG[mode])
+    # loaded once: a bad settings file refuses the whole benchmark (DataError: file, field) instead of
+    # failing each run, and editing the file while the benchmark runs changes none of its runs
+    settings = {mode: load_config(config or MODE_CONFIG[mode]) for mode in modes}
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     software = software_versions()  # each run's metrics.json has its own; a resumed run may come from another environment
@@ -338,7 +340,7 @@ def run_bench(sequences: list[str | os.PathLike], detectors: list, out_dir: str 
             noise = float(metrics.get("keypoint_noise_px") or 0.0)
         else:
             try:
-                cfg = load_config(config or MODE_CONFIG[mode])
+                cfg = copy.deepcopy(settings[mode])
                 if rep:
                     cfg.detector.keypoint_noise_px, cfg.detector.keypoint_noise_seed = float(keypoint_noise_px), rep
                 noise = cfg.detector.keypoint_noise_px
