@@ -11,7 +11,6 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
 
 
-
 def randomise_batchnorm(net, seed: int = 0) -> None:
     """Non-trivial running statistics in every BatchNorm2d of ``net``, so eval-mode BatchNorm (and its
     folding on export) is exercised (torch imported here: the SLAM tests need no torch)."""
@@ -23,6 +22,7 @@ def randomise_batchnorm(net, seed: int = 0) -> None:
             if isinstance(m, torch.nn.BatchNorm2d):
                 m.running_mean.copy_(0.1 * torch.randn(m.num_features, generator=g))
                 m.running_var.copy_(0.5 + torch.rand(m.num_features, generator=g))
+
 
 @pytest.fixture(scope="session")
 def shared_data() -> Path:

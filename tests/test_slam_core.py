@@ -677,10 +677,10 @@ def test_initialisation_bundle_adjustment_corrects_the_alignments_gravity(bundle
     R_wrong = so3_exp(np.radians([8.0, 0.0, 0.0])) @ R_wv
     pos_before = odo.lmap.pos[:len(lms)].copy()
     if start == "alignment":
-        odo._start(tau, R_wrong, R_wrong @ v_v[tau], gtsam.imuBias.ConstantBias(), None, None, from_vision=True,
-                   sigmas=(6.0, 0.1), velocities=v_v)
+        odo._start(tau, R_wrong, R_wrong @ v_v[tau], gtsam.imuBias.ConstantBias(), None, None, tilt_sigma_deg=6.0,
+                   velocity_sigma=0.1, velocities=v_v)
     else:
-        odo._start(tau, R_wrong, R_wrong @ v_v[tau], gtsam.imuBias.ConstantBias(), None, None, from_vision=False)
+        odo._start(tau, R_wrong, R_wrong @ v_v[tau], gtsam.imuBias.ConstantBias(), None, None)
     R_true = traj.rotation(np.array([tau * 1e-6]))[0]
     tilt = _tilt_deg(odo.state.T_world_body[:3, :3], R_true)
     if bundle_adjustment:
@@ -744,8 +744,8 @@ def test_initialisation_window_velocity_prior_fits_its_centre():
     v_true = {t: traj.position(np.array([t * 1e-6]), 1)[0] for t in t_kf}
     v_aligned = {t: v_true[t] for t in t_kf[-3:]}
     odo.state = NavEstimate(odo.preinit_window[-1][2].copy(), v_aligned[tau], gtsam.imuBias.ConstantBias())
-    odo._start(tau, np.eye(3), v_aligned[tau], gtsam.imuBias.ConstantBias(), None, None, from_vision=True,
-               sigmas=(2.0, 0.1), velocities=v_aligned)
+    odo._start(tau, np.eye(3), v_aligned[tau], gtsam.imuBias.ConstantBias(), None, None, tilt_sigma_deg=2.0,
+               velocity_sigma=0.1, velocities=v_aligned)
     assert odo.smoother.kf_ids == list(range(8))
     graph = odo.smoother.smoother.getFactors()
     sigmas = [graph.at(i).noiseModel().sigmas() for i in range(graph.size())

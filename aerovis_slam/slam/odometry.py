@@ -770,9 +770,9 @@ class StereoInertialOdometry:
                 if est is not None and est.tilt_sigma_deg <= ic.max_tilt_sigma_deg:
                     R_wv = est.R_world_vision
                     # no velocities from it: the initialisation's window takes the keyframe positions'
-                    # slopes, with the fallback's velocity prior (from_vision=False); its roll and
-                    # pitch prior is the estimate's own sigma (see _start)
-                    self._start(tau, R_wv, R_wv @ self.state.v_world, gtsam.imuBias.ConstantBias(), kpL, kpR, from_vision=False,
+                    # slopes, with the fallback's velocity prior; its roll and pitch prior is the
+                    # estimate's own sigma (see _start)
+                    self._start(tau, R_wv, R_wv @ self.state.v_world, gtsam.imuBias.ConstantBias(), kpL, kpR,
                                 tilt_sigma_deg=est.tilt_sigma_deg)
                     return
         elif len(frames) >= ic.min_frames and span >= ic.window_s and frames[-1][0] == tau:
@@ -805,15 +805,14 @@ class StereoInertialOdometry:
                     R_wv, tilt_sigma = vc.R_world_vision, vc.tilt_sigma_deg
             v_w = R_wv @ aligned.velocities[-1]
             bias = gtsam.imuBias.ConstantBias(np.zeros(3), aligned.gyro_bias)
-            self._start(tau, R_wv, v_w, bias, kpL, kpR, from_vision=True,
-                        sigmas=(tilt_sigma, aligned.velocity_sigma),
+            self._start(tau, R_wv, v_w, bias, kpL, kpR, tilt_sigma_deg=tilt_sigma, velocity_sigma=aligned.velocity_sigma,
                         velocities={int(ti): vi for ti, vi in zip(t, aligned.velocities)})
         elif (tau - self.t_first) * 1e-6 >= ic.timeout_s:
             R_wv, how = self._fallback_gravity()
             v_w = R_wv @ self.state.v_world if len(frames) >= 2 else np.zeros(3)
             self.log.warn("init-static", f"t={tau} µs: no visual-inertial alignment accepted within {ic.timeout_s} s; "
                                          f"gravity {how}")
-            self._start(tau, R_wv, v_w, gtsam.imuBias.ConstantBias(), kpL, kpR, from_vision=False)
+            self._start(tau, R_wv, v_w, gtsam.imuBias.ConstantBias(), kpL, kpR)
 
     def _fallback_gravity(self) -> tuple[np.ndarray, str]:
         """``R_world_vision`` (3, 3) for an initialisation without an accepted alignment, and how it was found.
@@ -847,18 +846,19 @@ class StereoInertialOdometry:
             return None
         return est
 
-    def _start(self, tau, R_wv, v_w, bias, kpL, kpR, *, from_vision: bool, sigmas=(0.0, 0.0),
-               velocities: dict[int, np.ndarray] | None = None, tilt_sigma_deg: float | None = None) -> None:
+    def _start(self, tau, R_wv, v_w, bias, kpL, kpR, *, tilt_sigma_deg: float | None = None,
+               velocity_sigma: float | None = None, velocities: dict[int, np.ndarray] | None = None) -> None:
         """Rotate the vision frame into the gravity-aligned world and start the smoother at ``tau``.
 
-        ``sigmas``: the alignment's own (tilt deg, velocity m/s) uncertainty; the smoother's priors
-        are never tighter than it (a prior tighter than the estimate would pin its error).
+        ``tilt_sigma_deg``, ``velocity_sigma``: the gravity estimate's own 1-sigma tilt (deg; the
+        alignment's, or the velocity change's) and the alignment's velocity uncertainty (m/s); the
+        smoother's priors are never tighter than them (a prior tighter than the estimate would pin
+        its error), floored at ``backend.prior_rollpitch_deg`` / ``prior_velocity_m_s``. None: no
+        such estimate (the static start's 5 deg, 10 in the initialisation's window;
+        ``UNALIGNED_VELOCITY_SIGMA``).
         ``velocities``: the alignment's velocity (vision frame, m/s) per aligned frame time (µs),
         None after the static-start fallback; with ``init.bundle_adjustment`` the keyframes tracked
         before the initialisation start the window either way (see :meth:`_start_window`).
-        ``tilt_sigma_deg``: a gravity estimate's own 1-sigma tilt (deg) without an alignment
-        (``init.gravity: velocity_change``): the roll and pitch prior, floored at
-        ``backend.prior_rollpitch_deg``, instead of the static start's 5 (10 in the window) deg.
         """
         Rh = np.eye(4)
         Rh[:3, :3] = R_wv
@@ -868,21 +868,20 @@ class StereoInertialOdometry:
         self.state = NavEstimate(T, v_w, bias)
         self.rotate_outputs = Rh
         b = self.cfg.backend
-        sig_rp = np.radians(max(b.prior_rollpitch_deg, sigmas[0]) if from_vision else 5.0)
-        if tilt_sigma_deg is not None:
-            # gravity from the velocity change over a second of tracking is good to a degree or two
-            # (its sigma predicts its error, tests/test_slam_core.py); the fallback's 10 deg let the
-            # window's few keyframes tilt it again (handheld_office, bench preset: eight-run median
-            # 1.06 -> 1.01 %, the worst run 2.47 -> 1.71 %; docs/slam.md)
-            sig_rp = np.radians(max(b.prior_rollpitch_deg, tilt_sigma_deg))
+        # gravity from the velocity change over a second of tracking is good to a degree or two (its
+        # sigma predicts its error, tests/test_slam_core.py): with the static start's 10 deg the
+        # window's few keyframes tilted it again (handheld_office, bench preset: eight-run median
+        # 1.01 % with its own sigma, 1.06 % with 10 deg, the worst run 1.71 against 2.47 %; docs/slam.md)
+        aligned_tilt = tilt_sigma_deg is not None
+        sig_rp = np.radians(max(b.prior_rollpitch_deg, tilt_sigma_deg) if aligned_tilt else 5.0)
         priors = dict(sigma_rollpitch_rad=sig_rp,
-                      sigma_vel=max(b.prior_velocity_m_s, sigmas[1]) if from_vision else UNALIGNED_VELOCITY_SIGMA,
+                      sigma_vel=UNALIGNED_VELOCITY_SIGMA if velocity_sigma is None else max(b.prior_velocity_m_s, velocity_sigma),
                       sigma_acc_bias=b.prior_acc_bias, sigma_gyro_bias=b.prior_gyro_bias)
         started = False
         if self.cfg.init.bundle_adjustment:
             # the accelerometer's mean direction (the static-start fallback) was 1.4-19 deg off on the
             # bench preset's handheld starts: with keyframes to correct it, a prior that admits that
-            window_priors = priors if (from_vision or tilt_sigma_deg is not None) else dict(priors, sigma_rollpitch_rad=np.radians(10.0))
+            window_priors = priors if aligned_tilt else dict(priors, sigma_rollpitch_rad=np.radians(10.0))
             started = self._start_window(tau, Rh, bias, velocities or {}, window_priors)
         if not started:
             self.kf_id += 1
