@@ -301,25 +301,41 @@ def test_gravity_from_the_velocity_change_over_a_tracked_stretch():
     assert gravity_from_velocity_change(t_us[short], T_vb[short], tracked[short], stream, params) is None
 
 
-def test_initialisation_fallback_takes_gravity_from_the_velocity_change():
+@pytest.mark.parametrize("tracked", [True, False])
+def test_initialisation_fallback_takes_gravity_from_the_velocity_change(tracked):
     """Without an accepted alignment by ``init.timeout_s`` the odometry initialises with the
     velocity-change gravity of its pre-initialisation frames (vision frame turned 25 deg from the
-    world); with no tracked frames it falls back to the accelerometer's mean (static start)."""
+    world; exact poses: within 0.2 deg), and that estimate's own tilt sigma, floored at
+    ``backend.prior_rollpitch_deg``, as the roll and pitch prior; with no tracked frames it falls back
+    to the accelerometer's mean (static start: the path accelerates, more than 5 deg off) and the
+    static start's 5 deg prior."""
     sim = _tiny_sim(imu_noise=True)
     traj = sim.trajectory
     cfg = SlamConfig()
+    cfg.init.timeout_s = 0.9
     cams = StereoCameras.from_rig(sim.rig, max_width=424, max_height=240, size_multiple=1)
     odo = StereoInertialOdometry(cams, ImuStream(sim.imu()), sim.rig.imu, cfg)
     t = np.arange(0.02, 0.98, 0.02)
     T = traj.pose_matrix(t)
-    odo.t_first = int(t[0] * 1e6)
-    odo.preinit_frames = [(int(round(ti * 1e6)), Ti, True) for ti, Ti in zip(t, np.linalg.inv(T[0]) @ T)]
-    R_wv, how = odo._fallback_gravity()
+    t_us = [int(round(ti * 1e6)) for ti in t]
+    odo.t_first = t_us[0]
+    odo.preinit_frames = [(ti, Ti, tracked) for ti, Ti in zip(t_us, np.linalg.inv(T[0]) @ T)]
+    odo.state = NavEstimate(np.linalg.inv(T[0]) @ T[-1], np.zeros(3), gtsam.imuBias.ConstantBias())
+    R_wv, how, sigma = odo._fallback_gravity()
     R_true = T[0][:3, :3]  # world <- vision (up to yaw)
-    assert "velocity change" in how and _tilt_deg(R_wv, R_true) < 0.2
-    odo.preinit_frames = [(f[0], f[1], False) for f in odo.preinit_frames]
-    R_acc, how = odo._fallback_gravity()
-    assert "static start" in how and _tilt_deg(R_acc, R_true) > 5.0
+    if tracked:
+        assert "velocity change" in how and _tilt_deg(R_wv, R_true) < 0.2
+        expected_prior = max(cfg.backend.prior_rollpitch_deg, sigma)
+    else:
+        assert "static start" in how and sigma is None and _tilt_deg(R_wv, R_true) > 5.0
+        expected_prior = 5.0
+    priors = []
+    initialize = odo.smoother.initialize
+    odo.smoother.initialize = lambda *a, **kw: (priors.append(kw["sigma_rollpitch_rad"]), initialize(*a, **kw))
+    odo._try_initialize(t_us[-1], None, None)  # no alignment frames: the timeout decides
+    assert odo.initialized
+    assert _tilt_deg(odo.state.T_world_body[:3, :3], T[-1][:3, :3]) == pytest.approx(_tilt_deg(R_wv, R_true), abs=1e-6)
+    assert priors == [pytest.approx(np.radians(expected_prior))]
 
 
 @pytest.mark.parametrize("span_s,starts", [(0.94, True), (0.6, False)])

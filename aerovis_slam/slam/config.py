@@ -308,9 +308,10 @@ class InitConfig:
             least-squares uncertainty (:class:`~aerovis_slam.slam.imu.Alignment`) is below these;
             the smoother starts with priors no tighter than it.
         timeout_s: without an accepted estimate by then (s after the first frame), initialise
-            anyway, with gravity from the velocity change over the frames tracked so far, or where
-            tracking does not cover that, from the accelerometer's mean over the first 0.2 s (a
-            static start), with a warning.
+            anyway, with gravity from the velocity change over the frames tracked so far (its own
+            tilt sigma as the roll and pitch prior), or where tracking does not cover that, from the
+            accelerometer's mean over the first 0.2 s (a static start: 5 deg, 10 in the
+            initialisation's window), with a warning.
         gravity: how gravity is found before the smoother starts. ``alignment``: the visual-inertial
             alignment over ``window_s`` of tracking (:func:`~aerovis_slam.slam.imu.align_visual_inertial`),
             accepted by its own sigmas. ``velocity_change``: once tracking spans ``velocity_change_s``,

@@ -808,14 +808,17 @@ class StereoInertialOdometry:
             self._start(tau, R_wv, v_w, bias, kpL, kpR, tilt_sigma_deg=tilt_sigma, velocity_sigma=aligned.velocity_sigma,
                         velocities={int(ti): vi for ti, vi in zip(t, aligned.velocities)})
         elif (tau - self.t_first) * 1e-6 >= ic.timeout_s:
-            R_wv, how = self._fallback_gravity()
+            R_wv, how, tilt_sigma = self._fallback_gravity()
             v_w = R_wv @ self.state.v_world if len(frames) >= 2 else np.zeros(3)
             self.log.warn("init-static", f"t={tau} µs: no visual-inertial alignment accepted within {ic.timeout_s} s; "
                                          f"gravity {how}")
-            self._start(tau, R_wv, v_w, gtsam.imuBias.ConstantBias(), kpL, kpR)
+            # the velocity change's own tilt sigma as the roll and pitch prior, as where it is the
+            # chosen start (init.gravity: velocity_change); the accelerometer's mean has none
+            self._start(tau, R_wv, v_w, gtsam.imuBias.ConstantBias(), kpL, kpR, tilt_sigma_deg=tilt_sigma)
 
-    def _fallback_gravity(self) -> tuple[np.ndarray, str]:
-        """``R_world_vision`` (3, 3) for an initialisation without an accepted alignment, and how it was found.
+    def _fallback_gravity(self) -> tuple[np.ndarray, str, float | None]:
+        """``R_world_vision`` (3, 3) for an initialisation without an accepted alignment, how it was
+        found, and its 1-sigma tilt (deg; None for the accelerometer's mean, which has no estimate of it).
 
         First choice: the velocity change over all the frames tracked so far
         (:func:`~aerovis_slam.slam.imu.gravity_from_velocity_change`), when its norm passes the
@@ -828,9 +831,10 @@ class StereoInertialOdometry:
         if est is not None:
             return (est.R_world_vision,
                     f"from the velocity change over the tracked frames {est.t_start_us}-{est.t_end_us} µs "
-                    f"(|g| = {np.linalg.norm(est.gravity_vision):.2f} m/s², tilt sigma {est.tilt_sigma_deg:.1f} deg)")
+                    f"(|g| = {np.linalg.norm(est.gravity_vision):.2f} m/s², tilt sigma {est.tilt_sigma_deg:.1f} deg)",
+                    est.tilt_sigma_deg)
         acc = self.stream.mean_acc(self.t_first, self.t_first + 200_000)
-        return gravity_rotation_from_acc(acc), "from the accelerometer (assumes a static start)"
+        return gravity_rotation_from_acc(acc), "from the accelerometer (assumes a static start)", None
 
     def _velocity_change_gravity(self):
         """:func:`~aerovis_slam.slam.imu.gravity_from_velocity_change` over the frames before the
