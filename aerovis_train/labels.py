@@ -27,7 +27,7 @@ class CornerLabeller:
         subpixel_window: half-size (px) of OpenCV's ``cornerSubPix`` window that moves each corner
             to sub-pixel precision (0: the integer pixels ``goodFeaturesToTrack`` returns). With 3
             (a 7x7 window) the labels of the `train` preset land closer to where the other view's
-            labels are (median cross-view distance 0.58 -> 0.22 px; README, "Sub-pixel corner labels").
+            labels are (median cross-view distance 0.58 -> 0.22 px; docs/training.md, "Sub-pixel corner labels").
     """
 
     def __init__(self, max_corners: int = 300, quality: float = 0.02, min_distance: int = 4, block_size: int = 5,
