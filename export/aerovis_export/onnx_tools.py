@@ -38,8 +38,9 @@ _HEAD_OPS = {"Conv", "ConvInteger", "QLinearConv", "Gemm", "MatMul"}
 def quiet_exporter() -> Iterator[None]:
     """Silence the exporters' progress prints, deprecation warnings and logging (the CLI shows its own progress)."""
     # torchao's import logs "Failed to load ..._C_mxfp8" (CUDA kernels absent on CPU builds) and torch's pytree
-    # a deprecation notice about its enums: noise for an export on a CPU box
-    names = ("torch.onnx", "torch.export", "torch._dynamo", "torch.fx", "torch.utils._pytree", "onnxscript", "torchao")
+    # a deprecation notice about its enums, and onnx_ir's optimisation passes one INFO line per merged initializer
+    # (24 of them at the end of `python train.py model=superlite`, whose Hydra logging shows INFO): noise for an export
+    names = ("torch.onnx", "torch.export", "torch._dynamo", "torch.fx", "torch.utils._pytree", "onnxscript", "onnx_ir", "torchao")
     loggers = [logging.getLogger(n) for n in names]
     levels = [lg.level for lg in loggers]
     for lg in loggers:
