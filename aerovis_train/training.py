@@ -15,6 +15,7 @@ checkpoint's weights, or with ``weights=last`` the final step's (fixed-budget ru
 from __future__ import annotations
 
 import json
+import logging
 import os
 import sys
 import time
@@ -263,6 +264,22 @@ def job_overrides() -> list[str] | None:
         return None
 
 
+def log_lightning_once() -> None:
+    """Print each Lightning log record once where the root logger already has handlers (Hydra's).
+
+    The ``lightning`` package adds a console handler of its own to the ``lightning`` logger at import,
+    and its records still propagate to the root, where Hydra's console handler printed every one a
+    second time ("INFO: Seed set to 0", then "[...][lightning.fabric.utilities.seed][INFO] - Seed set
+    to 0"). Without root handlers (a plain script) Lightning's own handler stays, the only output.
+    """
+    if not logging.getLogger().hasHandlers():
+        return
+    lightning_logger = logging.getLogger("lightning")
+    for handler in list(lightning_logger.handlers):
+        if type(handler) is logging.StreamHandler:  # its console handler; file handlers stay
+            lightning_logger.removeHandler(handler)
+
+
 def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
     """Run one training job; returns the validation AUC@10 of the weights it keeps in ``model.pt``
     (the best epoch's, or with ``weights=last`` the final step's): what a sweep optimises.
@@ -273,6 +290,7 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
             running Hydra job's (``python train.py ...``), if any.
     """
     t_start = time.time()
+    log_lightning_once()
     selection = str(cfg.get("weights", "best"))
     if selection not in WEIGHT_SELECTIONS:
         raise DataError(None, f"weights={selection!r}: expected one of {', '.join(WEIGHT_SELECTIONS)} "

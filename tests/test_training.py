@@ -234,6 +234,9 @@ def test_every_model_config_trains(tmp_path, sim_cache, model, crop, request):
 
     net, cfg, meta = load_model(run / "model.pt")
     assert cfg["name"] == model and len(meta["sha256"]) == 64
+    # Lightning's records once each, through Hydra's logging (Lightning's own console handler removed)
+    output = res.stdout + res.stderr
+    assert output.count("Seed set to 0") == 1, output[:3000]
 
 
 def test_resume_continues_from_last_checkpoint(tmp_path, sim_cache, superlite_run):
