@@ -318,8 +318,9 @@ class InitConfig:
             the velocity change between its ends against the rotated specific force
             (:func:`~aerovis_slam.slam.imu.gravity_from_velocity_change`, accepted when its norm is
             within 1 m/s² of 9.81 and its sigma below ``max_tilt_sigma_deg``); the smoother starts
-            with the fallback's priors (10 deg on roll and pitch, 0.5 m/s) and the initialisation's
-            window re-estimates velocities and gravity.
+            with that estimate's own tilt sigma as its roll and pitch prior (at least
+            ``backend.prior_rollpitch_deg``) and the fallback's 0.5 m/s velocity prior, and the
+            initialisation's window re-estimates velocities and gravity.
         velocity_change_s: tracked span before a ``velocity_change`` initialisation.
         min_position_inliers: before initialisation a frame counts as tracked with this many
             3D-2D inliers. Its rotation comes from the gyroscope, so only the position (3 unknowns, 2

@@ -876,8 +876,8 @@ class StereoInertialOdometry:
         # sigma predicts its error, tests/test_slam_core.py): with the static start's 10 deg the
         # window's few keyframes tilted it again (handheld_office, bench preset: eight-run median
         # 1.01 % with its own sigma, 1.06 % with 10 deg, the worst run 1.71 against 2.47 %; docs/slam.md)
-        aligned_tilt = tilt_sigma_deg is not None
-        sig_rp = np.radians(max(b.prior_rollpitch_deg, tilt_sigma_deg) if aligned_tilt else 5.0)
+        has_tilt_estimate = tilt_sigma_deg is not None  # the alignment's or the velocity change's
+        sig_rp = np.radians(max(b.prior_rollpitch_deg, tilt_sigma_deg) if has_tilt_estimate else 5.0)
         priors = dict(sigma_rollpitch_rad=sig_rp,
                       sigma_vel=UNALIGNED_VELOCITY_SIGMA if velocity_sigma is None else max(b.prior_velocity_m_s, velocity_sigma),
                       sigma_acc_bias=b.prior_acc_bias, sigma_gyro_bias=b.prior_gyro_bias)
@@ -885,7 +885,7 @@ class StereoInertialOdometry:
         if self.cfg.init.bundle_adjustment:
             # the accelerometer's mean direction (the static-start fallback) was 1.4-19 deg off on the
             # bench preset's handheld starts: with keyframes to correct it, a prior that admits that
-            window_priors = priors if aligned_tilt else dict(priors, sigma_rollpitch_rad=np.radians(10.0))
+            window_priors = priors if has_tilt_estimate else dict(priors, sigma_rollpitch_rad=np.radians(10.0))
             started = self._start_window(tau, Rh, bias, velocities or {}, window_priors)
         if not started:
             self.kf_id += 1
