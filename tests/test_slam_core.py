@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from aerovis_slam.errors import DataError
-from aerovis_slam.geometry import interpolate_poses, pose7_to_matrix, rotation_angle_deg, so3_exp
+from aerovis_slam.geometry import interpolate_poses, pose7_to_matrix, project, rotation_angle_deg, so3_exp, transform_points
 from aerovis_slam.io.sequence import Sequence
+from aerovis_slam.keypoints import Keypoints
 from aerovis_slam.measurements import ImuSamples, PoseSamples
 from aerovis_slam.sim import SequenceSpec, Simulator, write_sequence
 from aerovis_slam.sim.cache import ensure_preset
@@ -29,7 +30,7 @@ from aerovis_slam.slam.imu import (ImuStream, align_visual_inertial, gravity_fro
 from aerovis_slam.slam.pipeline import check_frame_slots, run_slam
 from aerovis_slam.slam.ransac import (bearings, pnp_ransac, position_given_rotation, project_points, reprojection_error,
                                       rotation_error_deg, rotation_ransac)
-from aerovis_slam.slam.stereo import search_disparity, triangulate
+from aerovis_slam.slam.stereo import is_rectified, match_stereo, search_disparity, swapped_pair_message, triangulate
 from aerovis_slam.slam.trajectory import ate
 
 K = np.array([[200.0, 0.0, 160.0], [0.0, 200.0, 120.0], [0.0, 0.0, 1.0]])
@@ -74,6 +75,33 @@ def test_stereo_row_search_recovers_subpixel_disparity():
     d, ok = search_disparity(tex, right, xy, min_disparity=1, max_disparity=30, min_support=0.0)
     assert ok.mean() > 0.8
     assert np.abs(d[ok] - d_true).max() < 0.15
+
+
+def test_a_rectified_pair_with_cam1_on_the_left_is_matched_without_the_row_search():
+    """The row search looks for the right view's match left of the left keypoint, so a rectified rig
+    whose cam0/cam1 are swapped (cam1 0.1 m to the left) must not take it: it is matched by the
+    general epipolar search, which triangulates exact projections exactly, and a warning names the
+    swap. The correct layout keeps the row search and gives no warning."""
+    K = np.array([[200.0, 0, 120], [0, 200.0, 90], [0, 0, 1]])
+    T_right_left = np.eye(4)
+    T_right_left[0, 3] = -0.1  # cam1 at +0.1 m along cam0's x: the right camera
+    T_swapped = np.linalg.inv(T_right_left)
+    assert is_rectified(K, K, T_right_left) and swapped_pair_message(K, K, T_right_left) is None
+    assert not is_rectified(K, K, T_swapped)
+    assert "swap cam0 and cam1" in swapped_pair_message(K, K, T_swapped)
+    rng = np.random.default_rng(0)
+    pts0 = np.column_stack([rng.uniform(-1, 1, 30), rng.uniform(-0.7, 0.7, 30), rng.uniform(2, 6, 30)])
+    uv0, _ = project(pts0, K)
+    uv1, _ = project(transform_points(T_swapped, pts0), K)
+    desc = rng.normal(size=(30, 32)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+    kp0 = Keypoints(uv0.astype(np.float32), np.ones(30, np.float32), desc)
+    kp1 = Keypoints(uv1.astype(np.float32), np.ones(30, np.float32), desc)
+    images = (np.zeros((180, 240), np.float32), np.zeros((180, 240), np.float32))  # the row search would find nothing here
+    idx, pts, xy1 = match_stereo(kp0, kp1, K, K, T_swapped, min_similarity=0.9, images=images)
+    assert len(idx) == 30
+    # float32 pixels (~2e-5 px) on disparities of 3.3 px and more: depth exact to ~1e-5 of itself
+    assert (np.linalg.norm(pts - pts0[idx], axis=1) < 1e-4 * pts0[idx, 2]).all()
 
 
 def test_pnp_ransac_rejects_known_outliers():

@@ -21,6 +21,7 @@ from aerovis_slam.keypoints import Keypoints
 from aerovis_slam.measurements import PoseSamples
 from aerovis_slam.slam import bench as bench_mod
 from aerovis_slam.slam.cli import main
+from aerovis_slam.slam.config import load_config
 from aerovis_slam.slam.loop import LoopCloser, LoopClosure, _HeldLoop, _Snapshot, descriptor_vectors, split_yaw, train_vocabulary, vlad
 from aerovis_slam.slam.trajectory import ate, end_error, final_trajectory, is_partial, read_tum, rpe, write_tum
 
@@ -674,6 +675,7 @@ def test_cli_run_writes_outputs(tmp_path, capsys, monkeypatch, empty_config):
     assert m["stages"]["detector"]["p50_ms"] == 2.0 and m["stages"]["backend"]["count"] == 0
     assert m["loop_closures"] == 1 and m["tracking_losses"] == 2 and "burst" in m["warnings"] and m["complete"] is True
     assert m["rpe_trans_rmse_m"] is not None and m["path_length_m"] > 0
+    assert m["settings"] == load_config(empty_config).to_dict()  # every value, not only the file's name
     back = read_tum(out / "traj.txt")
     assert len(back) == 96 and not is_partial(out / "traj.txt")
     # the final trajectory (the GT itself here): its own file and an ATE of zero

@@ -209,6 +209,8 @@ def run_sequence(sequence: str | os.PathLike, detector, config, out_dir: str | o
              # the perfect-tracks diagnostic (oracle.py): None for a run of the detector's own keypoints
              "oracle_noise_px": getattr(det_cfg, "oracle_noise_px", None),
              "keyframes": getattr(result, "keyframes", None), "pipeline_info": getattr(result, "info", None),
+             # every value of the setting, not only its name: a run of an edited or custom file stays reproducible
+             "settings": config.to_dict() if hasattr(config, "to_dict") else None,
              "environment": software_versions()}
     if closer is not None:
         result.warnings.extend(w for w in closer.warnings if w not in result.warnings)

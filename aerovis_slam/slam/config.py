@@ -82,7 +82,9 @@ class DetectorConfig:
         threshold: detection threshold of learned detectors (None: the bundle's). Event scenes with
             large textureless areas give few keypoints above the bundle's 0.01; the runtime then
             lowers it and relies on ``top_k`` and matching to keep the good ones.
-        classical: classical detector kind used when no bundle is given (``orb``, ``sift``, ``gftt_brief``).
+        classical: a classical detector kind (``orb``, ``sift``, ``gftt_brief``), validated but not
+            read by ``aerovis-slam run``: ``--detector KIND`` chooses a classical detector there, and
+            without it (or ``--model``) the run takes the shipped SuperLitE bundle.
         keypoint_noise_px: a sensitivity probe, 0 for every real use: uniform noise in
             ``[-keypoint_noise_px, +keypoint_noise_px]`` px added to each keypoint position after
             detection (descriptors unchanged), drawn from a generator seeded with
@@ -393,7 +395,9 @@ class SlamConfig:
     Attributes:
         name: setting name (``realtime``, ``accurate`` or the file stem).
         mode: the mode this setting is meant for (``sync`` | ``async`` | ``live``); the caller may override.
-        rate_hz: sync-mode processing rate (and the live-mode rate of a sync setting).
+        rate_hz: sync-mode processing rate (Hz). In every mode the first frame slot also lies one
+            ``1 / rate_hz`` after the data start, and the shortest frame interval before
+            initialisation is the smaller of ``1 / rate_hz`` and ``1 / max_rate_hz``.
         max_rate_hz: async/live cap: the frontend waits instead of re-processing nearly the same state.
         blas_threads: threads of numpy's BLAS (OpenBLAS) while the run lasts (None: the library's own,
             one per core). 1 by default: the detector's ONNX Runtime pool takes every core, and the

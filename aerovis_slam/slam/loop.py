@@ -109,7 +109,7 @@ DEFAULT_CONFIG: dict = {
     "drift_fraction": 0.05,
     "drift_min_m": 0.05,
     "max_rotation_drift_deg": 15.0,
-    # loops beyond the drift bound: kept when this many keyframes in a row verify agreeing ones (0: never)
+    # loops beyond the drift bound: kept when this many keyframes in a row verify agreeing ones (below 2: never)
     "confirmations": 3,
     "confirm_window_keyframes": 6,  # how far back a held loop still counts
     "confirm_drift_fraction": 0.2,  # their bound: this fraction of the distance travelled (plus drift_min_m)

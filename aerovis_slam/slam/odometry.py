@@ -12,15 +12,17 @@ OKVIS2 frontend + backend):
 5. motion-only optimisation (IMU factor + fixed landmarks) for the frame's state;
 6. keyframe decision by matched-area overlap; at a keyframe: new landmarks by left-right epipolar
    matching and triangulation, and a fixed-lag smoother update (:mod:`.backend`);
-7. loop closure (optional, another thread): keyframes and odometry go to the ``LoopCloser``;
-   corrections it publishes are applied to the output pose without waiting.
+7. loop closure (optional): each keyframe goes to the ``LoopCloser``, whose place recognition and
+   PnP verification run here, at the keyframe; its pose-graph optimisation runs in another thread,
+   and the corrections it publishes are applied to the output pose without waiting.
 
 Initialisation: vision-only stereo tracking (metric: stereo gives the scale) for ``init.window_s``,
 then the visual-inertial alignment (:func:`~aerovis_slam.slam.imu.align_visual_inertial`) gives
 gravity, velocities and the gyroscope bias, and the smoother starts with the keyframes tracked so far
 (their IMU factors and observations: a visual-inertial bundle adjustment, as in VINS-Mono, that
-re-estimates gravity, velocities and those poses together); without enough tracked frames by
-``init.timeout_s`` the accelerometer alone gives gravity (static start assumed, with a warning).
+re-estimates gravity, velocities and those poses together); without an accepted alignment by
+``init.timeout_s`` gravity comes from the velocity change over the frames tracked so far, or where
+tracking does not cover that, from the accelerometer alone (a static start; both with a warning).
 
 Frames: the world W is gravity-aligned (z up) with its origin and yaw at the first body pose; the
 body B is the IMU frame; outputs are ``T_world_body``. Before initialisation, poses live in the
@@ -196,7 +198,6 @@ class StereoInertialOdometry:
         self.loop_corrections = 0
         self.rotate_outputs = None                      # set at initialisation: R_world_vision to apply to earlier outputs
         self.init_anchor: tuple[int, np.ndarray] | None = None  # set with it: the window's oldest keyframe, its T_world_body then
-        self._min_dt = 1.0 / cfg.max_rate_hz
         self._keypoint_noise = np.random.default_rng(cfg.detector.keypoint_noise_seed)
 
     # ------------------------------------------------------------------------------------------

@@ -50,6 +50,7 @@ from .config import MODES, SlamConfig, load_config
 from .imu import ImuStream
 from .odometry import StereoInertialOdometry, WarningLog
 from .preprocessing import EventFeeder, EventReader, LivePreprocessor, observation_time
+from .stereo import swapped_pair_message
 from .trajectory import final_trajectory
 
 __all__ = ["SlamResult", "load_config", "run_slam"]
@@ -68,7 +69,7 @@ class SlamResult:
             the moment they arrive, as a live system would output them).
         latency_ms: (N,) event time (the frame's ``tau``) -> pose output.
         stage_ms: per-stage durations per iteration (``preprocess``, ``mcts``, ``detector``,
-            ``matching``, ``tracking``, ``keyframe``, ``backend``, ``loop``, ``total``).
+            ``matching``, ``refine``, ``tracking``, ``keyframe``, ``backend``, ``loop``, ``total``).
         wall_s: wall time of the run. sequence_duration_s: replayed span of the recording.
         loop_closures: closures reported by the loop closer. tracking_losses: map re-initialisations.
         warnings: distinct warnings with repeat counts. status: ``ok`` | ``failed: ...`` | ``stopped: ...``.
@@ -221,6 +222,9 @@ def _run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str |
                                   size_multiple=int(getattr(detector, "size_multiple", 1)), path=path)
     stream = ImuStream(imu, max_gap_us=int(config.tracking.max_imu_gap_ms * 1000))
     log = WarningLog()
+    swapped = swapped_pair_message(cams.left.K, cams.right.K, cams.T_right_left)
+    if swapped:
+        log.warn("stereo-layout", f"{path}: {swapped}")
     gaps = stream.gaps(stream.t_first, stream.t_last)
     if gaps:
         longest = max(b - a for a, b in gaps)

@@ -48,7 +48,7 @@ def pnp_ransac(points_world: np.ndarray, xy: np.ndarray, K: np.ndarray, *, repro
                min_inliers: int = 6) -> tuple[bool, np.ndarray, np.ndarray]:
     """Absolute pose of a calibrated camera from 3D-2D matches with outliers.
 
-    ``cv2.solvePnPRansac`` (P3P minimal samples, EPnP on the consensus set), then Levenberg-Marquardt
+    ``cv2.solvePnPRansac`` (AP3P minimal samples, EPnP on the consensus set), then Levenberg-Marquardt
     refinement on the inliers (``cv2.solvePnPRefineLM``) and a final inlier re-classification with
     the refined pose.
 

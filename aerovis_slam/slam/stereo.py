@@ -21,7 +21,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..geometry import epipolar_distance, project, transform_points
+from ..geometry import epipolar_distance, invert_T, project, transform_points
 from ..keypoints import Keypoints, descriptor_similarity
 
 
@@ -84,9 +84,23 @@ def triangulate(xy0: np.ndarray, xy1: np.ndarray, K0: np.ndarray, K1: np.ndarray
 
 
 def is_rectified(K0: np.ndarray, K1: np.ndarray, T_1_0: np.ndarray, tol: float = 1e-6) -> bool:
-    """True for a rectified horizontal pair: equal intrinsics, no rotation, a baseline along x only."""
+    """True for a rectified horizontal pair with camera 1 on the right: equal intrinsics, no rotation,
+    a baseline along +x of camera 0 only (``T_1_0`` maps camera-0 points into camera 1, so its x
+    translation is ``-b < 0``). The row search looks for the right view's match left of the left
+    keypoint (disparity >= 0) and gtsam's stereo factor puts the right camera at +b; a pair with
+    camera 1 on the left is matched by the general epipolar search instead (see
+    :func:`swapped_pair_message`)."""
     return (np.allclose(K0, K1, atol=tol * 1e3) and np.allclose(T_1_0[:3, :3], np.eye(3), atol=tol)
-            and abs(T_1_0[1, 3]) < tol and abs(T_1_0[2, 3]) < tol and abs(T_1_0[0, 3]) > 0)
+            and abs(T_1_0[1, 3]) < tol and abs(T_1_0[2, 3]) < tol and T_1_0[0, 3] < 0)
+
+
+def swapped_pair_message(K0: np.ndarray, K1: np.ndarray, T_1_0: np.ndarray) -> str | None:
+    """A warning for a rectified pair whose camera 1 is left of camera 0 (``cam0``/``cam1`` swapped in
+    the calibration), else None: such a rig runs, but without the rectified row search."""
+    if is_rectified(K0, K1, T_1_0) or not is_rectified(K1, K0, invert_T(T_1_0)):
+        return None
+    return (f"cam1 lies {T_1_0[0, 3]:.3f} m to the left of cam0 (rectified pair): the runtime expects cam0 = left, "
+            "cam1 = right and matches this pair without the rectified row search; swap cam0 and cam1 for it")
 
 
 def uses_row_search(K0: np.ndarray, K1: np.ndarray, T_1_0: np.ndarray, images) -> bool:
