@@ -13,7 +13,8 @@ are world points (m). Factors:
 ``BatchFixedLagSmoother`` (Levenberg-Marquardt; its iteration count is bounded and lowered to fit
 the time budget). Its "time" is the keyframe sequence number, so the lag counts keyframes, not
 seconds; a landmark's time is its newest observing keyframe, so it leaves the window with the last
-keyframe that saw it. Leaving variables are marginalised by gtsam into a linear prior on the rest.
+keyframe that saw it. Leaving variables are marginalised by gtsam into a linear prior on the rest,
+by default with their observations of staying landmarks (``BackendConfig.leaving_observations``).
 
 Frames between keyframes are estimated by :func:`track_frame` (motion-only, as in ORB-SLAM3's
 visual-inertial tracking): the current pose, velocity and bias with the IMU factor from the last
@@ -427,14 +428,18 @@ class KeyframeSmoother:
     def _observations_to_drop(self, seq: int) -> list[int]:
         """Factor slots of the observations that keyframes leaving at this update made of staying landmarks.
 
-        Marginalising a keyframe together with its observations of landmarks that stay in the window
-        would join all those landmarks in one dense prior (fill-in that grows with every
-        marginalisation and slows every later update). As OKVIS does, those observations are dropped
-        first; what the keyframe knew about the motion reaches the window through its IMU factor.
+        Only with ``leaving_observations: drop``. Marginalising a keyframe together with its
+        observations of landmarks that stay in the window joins those landmarks in one dense prior.
+        OKVIS drops such observations first to keep that prior sparse; what the keyframe knew about
+        the motion then reaches the window through its IMU factor, but what it knew about the
+        landmarks is lost, and their depth rests on the window's sightings alone. On the bench
+        preset marginalising them lowers the sync live error of handheld_office, drone8_lit and
+        spin_hdr_window (the rest level) without a slower update (docs/slam.md, "Leaving
+        keyframes' observations"), so it is the default.
         """
         horizon = seq - (self.cfg.window_keyframes - 0.5)
         leaving = {X(k) for k in self.kf_ids if self.kf_seq[k] < horizon}
-        if not leaving:
+        if not leaving or self.cfg.leaving_observations == "marginalise":
             return []
         # a staying landmark must keep two observations (a single ray leaves its depth free)
         staying = {}

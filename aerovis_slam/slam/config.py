@@ -274,6 +274,13 @@ class BackendConfig:
             wander from their first sighting's scene point like a random walk (docs/slam.md,
             "Track refinement": median 0.7 px in the first 50 ms, 1.9 px after a second on
             handheld_loop), so old sightings carry less. None: every sighting ``pixel_sigma``.
+        leaving_observations: what happens to a leaving keyframe's observations of landmarks that
+            stay in the window. ``marginalise``: gtsam marginalises them with the keyframe, so the
+            window keeps what they said about those landmarks (a landmark's depth from the longer
+            baseline of its older sightings). ``drop``: they are removed first, as OKVIS does, which
+            keeps the marginal prior sparse but leaves a landmark's depth to the sightings within
+            the window, where each new keyframe's stereo depth moves it (docs/slam.md, "Leaving
+            keyframes' observations").
     """
 
     window_keyframes: int = 8
@@ -291,6 +298,7 @@ class BackendConfig:
     max_landmarks: int = 800
     disparity_sigma_px: float | None = 0.6
     track_drift_px2_per_s: float | None = None
+    leaving_observations: str = "marginalise"
 
 
 @dataclass
@@ -484,6 +492,9 @@ def _validate(cfg: SlamConfig, path) -> None:
         raise DataError(path, f"blas_threads must be a whole number >= 1 or null (the BLAS library's own), got {cfg.blas_threads!r}")
     if cfg.backend.robust not in ("huber", "cauchy"):
         raise DataError(path, f"backend.robust must be 'huber' or 'cauchy', got {cfg.backend.robust!r}")
+    if cfg.backend.leaving_observations not in ("marginalise", "drop"):
+        raise DataError(path, "backend.leaving_observations must be 'marginalise' or 'drop', "
+                              f"got {cfg.backend.leaving_observations!r}")
     rc = cfg.refinement
     if rc.window_px < 3 or rc.window_px % 2 == 0:
         raise DataError(path, f"refinement.window_px must be an odd number >= 3, got {rc.window_px}")
