@@ -1218,3 +1218,23 @@ def test_cli_compare_prints_table_and_json(tmp_path, capsys):
     assert out_md.read_text() in text and "| s1 | 1.00, 1.20 | 0.80, 0.90 | 1.10 | 0.85 | -0.25 |" in text
     assert main(["compare", str(tmp_path / "a"), str(tmp_path / "missing")]) == 2
     assert "missing: no such file" in capsys.readouterr().err
+
+
+def test_runtime_guide_documents_every_shipped_setting():
+    """docs/runtime.md's settings reference names every key of the shipped settings files and of the
+    loop closer's defaults, so a new setting cannot ship undocumented."""
+    import yaml
+    from conftest import REPO_ROOT
+
+    from aerovis_slam.slam.loop import DEFAULT_CONFIG
+
+    guide = (REPO_ROOT / "docs" / "runtime.md").read_text()
+    missing = []
+    for name in ("accurate", "realtime"):
+        data = yaml.safe_load((REPO_ROOT / "conf" / "slam" / f"{name}.yaml").read_text())
+        for key, value in data.items():
+            # a table row names a section's first key in full and the next ones alone: `input.max_width`, `max_height`
+            names = [(f"{key}.{sub}", sub) for sub in value] if isinstance(value, dict) else [(key, key)]
+            missing += [f"{name}: {full}" for full, short in names if f"`{full}`" not in guide and f"`{short}`" not in guide]
+    missing += [f"loop: {k}" for k in DEFAULT_CONFIG if f"`{k}`" not in guide]
+    assert not missing, missing
