@@ -1038,6 +1038,8 @@ def test_pipeline_tracks_a_small_flight(small_flight):
     assert res.status == "ok" and res.complete
     assert res.info["initialized"]
     assert res.info["pose_refits"] == 0  # tracking.refit_on_disagreement is off in `accurate`
+    # the simulated rig is rectified with cam1 on the right: row search, pairs as stereo factors
+    assert res.info["stereo_row_search"] and res.info["backend_stereo_factors"] > 0
     # the alignment needs init.window_s (0.3 s) of tracked frames; by init.timeout_s (1.5 s) the
     # static-start fallback takes over (one 20 ms frame of slack); both from the first output, whose
     # frame the warm-up (input.warm_up) may delay by up to input.max_warm_up_s

@@ -50,7 +50,7 @@ from .config import MODES, SlamConfig, load_config
 from .imu import ImuStream
 from .odometry import StereoInertialOdometry, WarningLog
 from .preprocessing import EventFeeder, EventReader, LivePreprocessor, observation_time
-from .stereo import swapped_pair_message
+from .stereo import is_rectified, swapped_pair_message
 from .trajectory import final_trajectory
 
 __all__ = ["SlamResult", "load_config", "run_slam"]
@@ -458,6 +458,10 @@ def _run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str |
         "landmarks": len(odo.lmap),
         "loop_corrections_applied": odo.loop_corrections,
         "backend_qr_fallbacks": odo.smoother.qr_fallbacks,
+        # which stereo path ran: the rectified row search (cam1 right of cam0, equal intrinsics) and, with
+        # backend.disparity_sigma_px, its pairs as single stereo factors; else the general epipolar search
+        "stereo_row_search": bool(is_rectified(cams.left.K, cams.right.K, cams.T_right_left)),
+        "backend_stereo_factors": odo.smoother.stereo_factors,
         "pose_refits": odo.pose_refits,  # tracking.refit_on_disagreement: frames the loosened refit tracked
         # backend.time_budget_ms: updates run with fewer than max_iterations (the cap depends on the
         # machine's speed; frames.txt logs every cap, and a frame-slot replay imposes them again)
