@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
+from conftest import REPO_ROOT
 
 from aerovis_slam.errors import DataError
 from aerovis_slam.geometry import invert_T, matrix_to_pose7, pose7_to_matrix, project, so3_exp, transform_points
@@ -22,7 +24,7 @@ from aerovis_slam.measurements import PoseSamples
 from aerovis_slam.slam import bench as bench_mod
 from aerovis_slam.slam.cli import main
 from aerovis_slam.slam.config import load_config
-from aerovis_slam.slam.loop import LoopCloser, LoopClosure, _HeldLoop, _Snapshot, descriptor_vectors, split_yaw, train_vocabulary, vlad
+from aerovis_slam.slam.loop import DEFAULT_CONFIG, LoopCloser, LoopClosure, _HeldLoop, _Snapshot, descriptor_vectors, split_yaw, train_vocabulary, vlad
 from aerovis_slam.slam.trajectory import ate, end_error, final_trajectory, is_partial, read_tum, rpe, write_tum
 
 
@@ -1223,11 +1225,6 @@ def test_cli_compare_prints_table_and_json(tmp_path, capsys):
 def test_runtime_guide_documents_every_shipped_setting():
     """docs/runtime.md's settings reference names every key of the shipped settings files and of the
     loop closer's defaults, so a new setting cannot ship undocumented."""
-    import yaml
-    from conftest import REPO_ROOT
-
-    from aerovis_slam.slam.loop import DEFAULT_CONFIG
-
     guide = (REPO_ROOT / "docs" / "runtime.md").read_text()
     missing = []
     for name in ("accurate", "realtime"):

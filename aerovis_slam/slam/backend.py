@@ -437,9 +437,11 @@ class KeyframeSmoother:
         spin_hdr_window (the rest level) without a slower update (docs/slam.md, "Leaving
         keyframes' observations"), so it is the default.
         """
+        if self.cfg.leaving_observations == "marginalise":
+            return []
         horizon = seq - (self.cfg.window_keyframes - 0.5)
         leaving = {X(k) for k in self.kf_ids if self.kf_seq[k] < horizon}
-        if not leaving or self.cfg.leaving_observations == "marginalise":
+        if not leaving:
             return []
         # a staying landmark must keep two observations (a single ray leaves its depth free)
         staying = {}

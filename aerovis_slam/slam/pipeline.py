@@ -222,7 +222,10 @@ def _run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str |
                                   size_multiple=int(getattr(detector, "size_multiple", 1)), path=path)
     stream = ImuStream(imu, max_gap_us=int(config.tracking.max_imu_gap_ms * 1000))
     log = WarningLog()
-    swapped = swapped_pair_message(cams.left.K, cams.right.K, cams.T_right_left)
+    # which stereo path runs: the rectified row search (cam1 right of cam0, equal intrinsics) and, with
+    # backend.disparity_sigma_px, its pairs as single stereo factors; else the general epipolar search
+    row_search = bool(is_rectified(cams.left.K, cams.right.K, cams.T_right_left))
+    swapped = None if row_search else swapped_pair_message(cams.left.K, cams.right.K, cams.T_right_left)
     if swapped:
         log.warn("stereo-layout", f"{path}: {swapped}")
     gaps = stream.gaps(stream.t_first, stream.t_last)
@@ -458,9 +461,7 @@ def _run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str |
         "landmarks": len(odo.lmap),
         "loop_corrections_applied": odo.loop_corrections,
         "backend_qr_fallbacks": odo.smoother.qr_fallbacks,
-        # which stereo path ran: the rectified row search (cam1 right of cam0, equal intrinsics) and, with
-        # backend.disparity_sigma_px, its pairs as single stereo factors; else the general epipolar search
-        "stereo_row_search": bool(is_rectified(cams.left.K, cams.right.K, cams.T_right_left)),
+        "stereo_row_search": row_search,
         "backend_stereo_factors": odo.smoother.stereo_factors,
         "pose_refits": odo.pose_refits,  # tracking.refit_on_disagreement: frames the loosened refit tracked
         # backend.time_budget_ms: updates run with fewer than max_iterations (the cap depends on the
