@@ -1358,6 +1358,29 @@ def test_pipeline_survives_imu_gap_and_missing_events(small_flight, tmp_path):
     assert rf["ate_rmse_m"] < 0.12 * rf["path_length_m"]
 
 
+def test_event_bursts_above_the_rate_cap_warn_and_the_run_continues(small_flight):
+    """``input.rate_cap_mev_s`` below the flight's own event rate (a burst for the whole run): the
+    cap's token bucket accepts at most ``cap * (span + 10 ms)`` events per camera, so at least the
+    rest of what the run read is dropped; the run says so once, with the count, records it in
+    ``info`` and still completes and initialises on the thinned events."""
+    with Sequence(small_flight) as s:
+        spans = []
+        for c in ("cam0", "cam1"):
+            t = s.events(c).t
+            spans.append(((int(t[-1]) - int(t[0])) * 1e-6, len(t)))
+    rate = min(n / span for span, n in spans)  # ev/s of the quieter camera
+    cfg = load_config("accurate")
+    cfg.input.rate_cap_mev_s = 0.3 * rate / 1e6
+    res = run_slam(small_flight, StereoClassicalDetector("orb", 300), cfg, mode="sync", progress=False)
+    assert res.status == "ok" and res.complete and res.info["initialized"]
+    cap = cfg.input.rate_cap_mev_s * 1e6
+    most_accepted = sum(cap * (span + 0.01) for span, _ in spans)
+    dropped = res.info["dropped_rate_cap"]
+    assert res.info["events"] - most_accepted <= dropped < res.info["events"]
+    rate_cap_warnings = [w for w in res.warnings if "event-rate cap" in w]
+    assert len(rate_cap_warnings) == 1 and f"dropped {dropped} of {res.info['events']} events" in rate_cap_warnings[0]
+
+
 def test_async_mode_processes_newest_state(small_flight):
     """async: frames follow the simulated clock (spacing >= the 100 Hz cap), latency >= processing.
     (Without the observation lag, which moves each output to when its keypoints show the scene:
