@@ -1711,7 +1711,7 @@ def test_alignment_images_average_the_shortest_windows_of_both_polarities(tmp_pa
     f = tmp_path / "short.yaml"
     f.write_text("refinement:\n  windows: 2\n")
     assert load_config(f).refinement.windows == 2
-    assert load_config("accurate").refinement.windows == 3 and load_config("realtime").refinement.windows is None
+    assert load_config("accurate").refinement.windows == 3 and load_config("realtime").refinement.windows == 3
     f.write_text("refinement:\n  windows: 0\n")
     with pytest.raises(DataError, match="refinement.windows"):
         load_config(f)
