@@ -451,18 +451,19 @@ def _run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str |
             detector.threshold = old_threshold
         bar.close()
     wall = time.perf_counter() - wall0
-    if "feeder" in locals() and feeder.dropped_rate_cap:
+    events_read = int(sum(feeder.events_in)) if "feeder" in locals() else 0
+    dropped_rate_cap = int(feeder.dropped_rate_cap) if "feeder" in locals() else 0
+    if dropped_rate_cap:  # only events that were read can be dropped, so events_read > 0
         # one warning with the total: the cap thins bursts evenly (mcts.TimestampBuffer), so what a
         # user needs is how much of the input it cost, not a message per packet
-        read = max(sum(feeder.events_in), 1)
         log.warn("rate-cap", f"the event-rate cap ({config.input.rate_cap_mev_s:g} Mev/s per camera, input.rate_cap_mev_s) "
-                             f"dropped {feeder.dropped_rate_cap} of {read} events ({100 * feeder.dropped_rate_cap / read:.1f} %) "
+                             f"dropped {dropped_rate_cap} of {events_read} events ({100 * dropped_rate_cap / events_read:.1f} %) "
                              f"in bursts above it")
     pose7 = matrix_to_pose7(np.stack(T_out)) if T_out else np.zeros((0, 7))
     pose7_final = matrix_to_pose7(T_final) if (complete and T_final is not None) else None
     info = {
-        "events": int(sum(feeder.events_in)) if "feeder" in locals() else 0,
-        "dropped_rate_cap": int(feeder.dropped_rate_cap) if "feeder" in locals() else 0,
+        "events": events_read,
+        "dropped_rate_cap": dropped_rate_cap,
         "dropped_noise_filter": int(feeder.dropped_noise_filter) if "feeder" in locals() else 0,  # input.noise_filter_ms
         "imu_gaps": len(gaps),
         "landmarks": len(odo.lmap),
