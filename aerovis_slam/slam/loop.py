@@ -18,7 +18,10 @@ As in OKVIS2 (REFERENCE.md section 5; paper Fig. 1), in three steps:
 2. **Verification** of the best candidates: descriptor matches between the candidate's keypoints
    with triangulated landmarks and the new keyframe's keypoints (mutual nearest neighbours; when
    too few, guided by the odometry's relative pose, :meth:`LoopCloser._guided_pairs`), absolute pose by 3D-2D RANSAC
-   (``cv2.solvePnPRansac``) with at least ``min_inliers`` inliers (OKVIS2: 10), and a drift bound:
+   (``cv2.solvePnPRansac``) with at least ``min_inliers`` inliers (OKVIS2: 10); with
+   ``rematch_window_px``, the pose is then refitted to every landmark of the candidate that matches
+   a keypoint near its projection (:meth:`LoopCloser._rematch`: a loop verified through 10-20
+   descriptor matches is measured with all the landmarks both views hold); and a drift bound:
    the correction the loop implies must be at most ``drift_fraction`` of the distance travelled
    between the two keyframes (plus ``drift_min_m``) and ``max_rotation_drift_deg``, since real
    odometry cannot have drifted more (OKVIS2 uses ~1.35 %; the default here is looser for the
@@ -106,6 +109,9 @@ DEFAULT_CONFIG: dict = {
     "ransac_iterations": 300,
     "guided_window_px": 40.0,  # fallback matching around the odometry's projection (0: off)
     "guided_min_similarity": 0.5,  # descriptor similarity (cosine, or 1 - hamming/bits) it needs
+    # after PnP: every landmark of the match keyframe matched again within this radius of its projection,
+    # and the pose refitted to all (0: off, as before 2026-12-06)
+    "rematch_window_px": 4.0,
     "drift_fraction": 0.05,
     "drift_min_m": 0.05,
     "max_rotation_drift_deg": 15.0,
@@ -364,7 +370,8 @@ class LoopClosure:
     ``T_match_query`` (4, 4) is the measured pose of the query body in the match body frame and
     ``T_est_match_query`` the odometry's estimate of it (loop corrections before this one included);
     ``drift_m`` / ``drift_deg`` the correction between them, which the loop applies to the odometry.
-    ``bound_m`` is the drift the verification allowed it (the pose graph trusts it fully up to
+    ``inliers`` counts the pairs ``T_match_query`` was fitted to (the PnP's inliers, or the
+    rematch's pairs where that found more). ``bound_m`` is the drift the verification allowed it (the pose graph trusts it fully up to
     there); ``confirmed_by`` the number of keyframes whose agreeing loops kept it (1: within the
     drift bound on its own).
     """
@@ -808,15 +815,18 @@ class LoopCloser:
         idx = inliers.reshape(-1)
         # refine on the inliers (minimal solutions are noisy)
         rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], query.K, None, rvec, tvec)
+        obj, img = obj[idx], img[idx]
+        if c["rematch_window_px"] > 0:
+            obj, img, rvec, tvec = self._rematch(query, match, obj, img, rvec, tvec)
         T_match_query = self._pnp_to_relative(np.concatenate([rvec.ravel(), tvec.ravel()]), query.T_body_cam)
-        cov = self._pnp_covariance(obj[idx], img[idx], query.K, rvec, tvec, query.T_body_cam, T_match_query)
+        cov = self._pnp_covariance(obj, img, query.K, rvec, tvec, query.T_body_cam, T_match_query)
         if cov is None:
             return None, "inliers"
         T_est = invert_T(match.T_world_body) @ query.T_world_body
         drift_m, drift_deg = pose_difference(T_est, T_match_query)
         travelled = query.travelled_m - match.travelled_m
         bound = self._drift_bound(travelled)
-        loop = LoopClosure(query.kf_id, match.kf_id, score, n_in, T_match_query, T_est, travelled, cov, query.t_us, match.t_us, bound)
+        loop = LoopClosure(query.kf_id, match.kf_id, score, len(obj), T_match_query, T_est, travelled, cov, query.t_us, match.t_us, bound)
         if drift_m > bound or drift_deg > c["max_rotation_drift_deg"]:
             return loop, "drift"
         return loop, None
@@ -845,6 +855,36 @@ class LoopCloser:
         m = window_matches(uv, query.keypoints.xy, float(c["guided_window_px"]),
                            lambda i, j: pair_similarity(desc_m, desc_q, valid[i], j), float(c["guided_min_similarity"]))
         return np.stack([m[:, 1], valid[m[:, 0]]], axis=1)
+
+    def _rematch(self, query: _Keyframe, match: _Keyframe, obj, img, rvec, tvec):
+        """More landmark-keypoint pairs for a verified loop's pose: every landmark of ``match``
+        projected with the PnP pose (``rvec``, ``tvec``: match body -> query camera) and matched to
+        the query's keypoints within ``rematch_window_px`` (similarity ``guided_min_similarity``),
+        then the pose refitted to those whose residual stays within ``ransac_px``.
+
+        Returns ``(obj, img, rvec, tvec)``: the larger set when it is larger, else the inputs.
+        """
+        c = self.config
+        valid = np.flatnonzero(match.point_valid)
+        if len(valid) <= len(obj) or len(query.keypoints) == 0:
+            return obj, img, rvec, tvec
+        uv, _ = cv2.projectPoints(match.points_body[valid], rvec, tvec, query.K, None)
+        desc_m, desc_q = match.keypoints.descriptors, query.keypoints.descriptors
+        m = window_matches(uv.reshape(-1, 2), query.keypoints.xy, float(c["rematch_window_px"]),
+                           lambda i, j: pair_similarity(desc_m, desc_q, valid[i], j), float(c["guided_min_similarity"]))
+        if len(m) <= len(obj):
+            return obj, img, rvec, tvec
+        obj2 = np.ascontiguousarray(match.points_body[valid[m[:, 0]]], np.float64)
+        img2 = np.ascontiguousarray(query.keypoints.xy[m[:, 1]], np.float64)
+        rv, tv = cv2.solvePnPRefineLM(obj2, img2, query.K, None, rvec.copy(), tvec.copy())
+        for _ in range(2):  # refit without the pairs the new pose does not explain
+            proj, _ = cv2.projectPoints(obj2, rv, tv, query.K, None)
+            keep = np.linalg.norm(proj.reshape(-1, 2) - img2, axis=1) <= float(c["ransac_px"])
+            if keep.sum() <= len(obj):
+                return obj, img, rvec, tvec
+            obj2, img2 = obj2[keep], img2[keep]
+            rv, tv = cv2.solvePnPRefineLM(obj2, img2, query.K, None, rv, tv)
+        return obj2, img2, rv, tv
 
     @staticmethod
     def _pnp_to_relative(params: np.ndarray, T_body_cam: np.ndarray) -> np.ndarray:
