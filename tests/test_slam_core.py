@@ -1571,8 +1571,10 @@ def test_config_loop_section_reaches_the_loop_closer(tmp_path):
     from aerovis_slam.slam.bench import make_loop_closer
     from aerovis_slam.slam.loop import DEFAULT_CONFIG
 
-    # the shipped accurate setting widens the loop edges' translation floor (docs/slam.md); realtime keeps the defaults
-    assert load_config("accurate").loop == {"loop_sigma_trans_m": 0.03} and load_config("realtime").loop == {}
+    # the shipped accurate setting widens the loop edges' translation floor and refits loops to every landmark
+    # near its projection (docs/slam.md); realtime keeps the defaults
+    accurate_loop = {"loop_sigma_trans_m": 0.03, "rematch_window_px": 4.0}
+    assert load_config("accurate").loop == accurate_loop and load_config("realtime").loop == {}
     f = tmp_path / "strict_loops.yaml"
     f.write_text("loop:\n  min_inliers: 15.0\n  drift_fraction: 0.02\n")
     cfg = load_config(f)
@@ -1581,7 +1583,7 @@ def test_config_loop_section_reaches_the_loop_closer(tmp_path):
         assert closer.config["min_inliers"] == 15 and closer.config["drift_fraction"] == 0.02
         assert closer.config["ransac_px"] == DEFAULT_CONFIG["ransac_px"]
     with make_loop_closer(object(), load_config("accurate")) as closer:
-        assert closer.config == {**DEFAULT_CONFIG, "loop_sigma_trans_m": 0.03}
+        assert closer.config == {**DEFAULT_CONFIG, **accurate_loop}
     with make_loop_closer(object(), load_config("realtime")) as closer:
         assert closer.config == DEFAULT_CONFIG
     for bad, match in (("min_inlier: 12", "loop.min_inlier'"), ("min_inliers: 12.5", "loop.min_inliers must be a whole"),

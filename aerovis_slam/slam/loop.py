@@ -110,8 +110,8 @@ DEFAULT_CONFIG: dict = {
     "guided_window_px": 40.0,  # fallback matching around the odometry's projection (0: off)
     "guided_min_similarity": 0.5,  # descriptor similarity (cosine, or 1 - hamming/bits) it needs
     # after PnP: every landmark of the match keyframe matched again within this radius of its projection,
-    # and the pose refitted to all (0: off, as before 2026-12-06)
-    "rematch_window_px": 4.0,
+    # and the pose refitted to all (0: off; `accurate` sets 4 px, docs/slam.md)
+    "rematch_window_px": 0.0,
     "drift_fraction": 0.05,
     "drift_min_m": 0.05,
     "max_rotation_drift_deg": 15.0,
