@@ -569,7 +569,6 @@ def test_guided_matching_closes_a_loop_whose_appearance_changed(vocabulary):
     closer.close()
 
 
-
 def test_rematch_measures_a_loop_with_every_landmark_it_can_see():
     """A loop found through a dozen descriptor matches, while the match keyframe sees hundreds of
     landmarks the query sees too: projecting all of them with the PnP pose and matching near the

@@ -813,9 +813,9 @@ class LoopCloser:
         if not ok or n_in < c["min_inliers"] or n_in < c["min_inlier_ratio"] * len(pairs):
             return None, "inliers"
         idx = inliers.reshape(-1)
-        # refine on the inliers (minimal solutions are noisy)
-        rvec, tvec = cv2.solvePnPRefineLM(obj[idx], img[idx], query.K, None, rvec, tvec)
         obj, img = obj[idx], img[idx]
+        # refine on the inliers (minimal solutions are noisy)
+        rvec, tvec = cv2.solvePnPRefineLM(obj, img, query.K, None, rvec, tvec)
         if c["rematch_window_px"] > 0:
             obj, img, rvec, tvec = self._rematch(query, match, obj, img, rvec, tvec)
         T_match_query = self._pnp_to_relative(np.concatenate([rvec.ravel(), tvec.ravel()]), query.T_body_cam)
@@ -841,19 +841,25 @@ class LoopCloser:
         candidates a weaker descriptor agreement suffices (``guided_min_similarity``). The PnP and
         the drift bound then judge the result as for global matches.
         """
-        c = self.config
+        T_cq_mb = invert_T(query.T_world_body @ query.T_body_cam) @ match.T_world_body  # match body -> query camera
+        return self._projected_pairs(query, match, T_cq_mb, float(self.config["guided_window_px"]))
+
+    def _projected_pairs(self, query: _Keyframe, match: _Keyframe, T_cq_mb: np.ndarray, window_px: float) -> np.ndarray:
+        """Mutual best matches (similarity at least ``guided_min_similarity``) of the match
+        keyframe's landmarks, projected into the query camera with ``T_cq_mb`` (4, 4: match body ->
+        query camera), to the query's keypoints within ``window_px`` of the projection:
+        (M, 2) ``(query index, match index)``."""
         valid = np.flatnonzero(match.point_valid)
         if len(valid) == 0 or len(query.keypoints) == 0:
             return np.zeros((0, 2), np.int64)
-        T_cq_mb = invert_T(query.T_world_body @ query.T_body_cam) @ match.T_world_body  # match body -> query camera
         uv, z = project(transform_points(T_cq_mb, match.points_body[valid]), query.K)
         front = z > 0.05
         valid, uv = valid[front], uv[front]
         if len(valid) == 0:
             return np.zeros((0, 2), np.int64)
         desc_m, desc_q = match.keypoints.descriptors, query.keypoints.descriptors
-        m = window_matches(uv, query.keypoints.xy, float(c["guided_window_px"]),
-                           lambda i, j: pair_similarity(desc_m, desc_q, valid[i], j), float(c["guided_min_similarity"]))
+        m = window_matches(uv, query.keypoints.xy, window_px,
+                           lambda i, j: pair_similarity(desc_m, desc_q, valid[i], j), float(self.config["guided_min_similarity"]))
         return np.stack([m[:, 1], valid[m[:, 0]]], axis=1)
 
     def _rematch(self, query: _Keyframe, match: _Keyframe, obj, img, rvec, tvec):
@@ -865,17 +871,15 @@ class LoopCloser:
         Returns ``(obj, img, rvec, tvec)``: the larger set when it is larger, else the inputs.
         """
         c = self.config
-        valid = np.flatnonzero(match.point_valid)
-        if len(valid) <= len(obj) or len(query.keypoints) == 0:
+        if int(match.point_valid.sum()) <= len(obj):
             return obj, img, rvec, tvec
-        uv, _ = cv2.projectPoints(match.points_body[valid], rvec, tvec, query.K, None)
-        desc_m, desc_q = match.keypoints.descriptors, query.keypoints.descriptors
-        m = window_matches(uv.reshape(-1, 2), query.keypoints.xy, float(c["rematch_window_px"]),
-                           lambda i, j: pair_similarity(desc_m, desc_q, valid[i], j), float(c["guided_min_similarity"]))
-        if len(m) <= len(obj):
+        T_cq_mb = np.eye(4)
+        T_cq_mb[:3, :3], T_cq_mb[:3, 3] = cv2.Rodrigues(rvec)[0], np.ravel(tvec)
+        pairs = self._projected_pairs(query, match, T_cq_mb, float(c["rematch_window_px"]))
+        if len(pairs) <= len(obj):
             return obj, img, rvec, tvec
-        obj2 = np.ascontiguousarray(match.points_body[valid[m[:, 0]]], np.float64)
-        img2 = np.ascontiguousarray(query.keypoints.xy[m[:, 1]], np.float64)
+        obj2 = np.ascontiguousarray(match.points_body[pairs[:, 1]], np.float64)
+        img2 = np.ascontiguousarray(query.keypoints.xy[pairs[:, 0]], np.float64)
         rv, tv = cv2.solvePnPRefineLM(obj2, img2, query.K, None, rvec.copy(), tvec.copy())
         for _ in range(2):  # refit without the pairs the new pose does not explain
             proj, _ = cv2.projectPoints(obj2, rv, tv, query.K, None)
