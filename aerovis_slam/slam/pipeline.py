@@ -273,7 +273,7 @@ def _run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str |
     stages: dict[str, list[float]] = {s: [] for s in STAGES}
     status, complete = "ok", True
     failure_trace = None
-    reader = live = None
+    reader = live = feeder = None
     T_final = None
     bar = tqdm(total=round((t_end - t_begin) * 1e-6, 3), unit="s", desc=f"slam {path.stem} ({mode})", disable=not progress,
                leave=False, file=sys.stderr, bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} s [{elapsed}<{remaining}]")
@@ -451,8 +451,10 @@ def _run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str |
             detector.threshold = old_threshold
         bar.close()
     wall = time.perf_counter() - wall0
-    events_read = int(sum(feeder.events_in)) if "feeder" in locals() else 0
-    dropped_rate_cap = int(feeder.dropped_rate_cap) if "feeder" in locals() else 0
+    # a run that failed before its feeder existed (bad detector, no IMU) read and dropped nothing
+    events_read = int(sum(feeder.events_in)) if feeder is not None else 0
+    dropped_rate_cap = int(feeder.dropped_rate_cap) if feeder is not None else 0
+    dropped_noise_filter = int(feeder.dropped_noise_filter) if feeder is not None else 0
     if dropped_rate_cap:  # only events that were read can be dropped, so events_read > 0
         # one warning with the total: the cap thins bursts evenly (mcts.TimestampBuffer), so what a
         # user needs is how much of the input it cost, not a message per packet
@@ -464,7 +466,7 @@ def _run_slam(sequence: str | Path, detector, config: SlamConfig, *, mode: str |
     info = {
         "events": events_read,
         "dropped_rate_cap": dropped_rate_cap,
-        "dropped_noise_filter": int(feeder.dropped_noise_filter) if "feeder" in locals() else 0,  # input.noise_filter_ms
+        "dropped_noise_filter": dropped_noise_filter,  # input.noise_filter_ms
         "imu_gaps": len(gaps),
         "landmarks": len(odo.lmap),
         "loop_corrections_applied": odo.loop_corrections,
