@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -22,7 +23,7 @@ from aerovis_slam.sim import (
 from aerovis_slam.sim.cli import main as sim_main
 from aerovis_slam.sim.cli import run_preset
 from aerovis_slam.sim.rig import RIG_DIR, available_rigs
-from aerovis_slam.sim.trajectory import Sinusoids, Trajectory, make_trajectory
+from aerovis_slam.sim.trajectory import Pauses, Sinusoids, Trajectory, make_trajectory
 
 NO_NOISE = EventConfig(noise=False, refractory_us=0)
 
@@ -355,6 +356,45 @@ def test_loop_period_of_a_handheld_trajectory():
     for bad in (0.0, 6.0):
         with pytest.raises(DataError, match=r"loop_period_s must lie in \(0, duration_s = 5.0\]"):
             make_trajectory("handheld", np.random.default_rng(3), 5.0, lo, hi, loop=True, loop_period_s=bad)
+
+
+def test_a_pause_holds_the_camera_still_and_then_goes_on_along_its_path():
+    """``Pauses``: the camera slows to a halt over ``ramp_s``, stands still for ``hold_s`` and then
+    follows the unpaused path ``ramp_s + hold_s`` late (the warp's two ramps each lose ``ramp_s / 2``).
+    The IMU at rest reads zero rotation and gravity's length, and velocity and acceleration are the
+    derivatives of the position through the warp (finite differences: O(h^2) errors, ~1e-6 here)."""
+    lo, hi = np.array([-2.0, -2.0, 0.5]), np.array([2.0, 2.0, 2.0])
+    free = make_trajectory("handheld", np.random.default_rng(4), 6.0, lo, hi, speed=2.0)
+    stop, hold, ramp = 2.0, 1.5, 0.4
+    paused = dataclasses.replace(free, pauses=Pauses([(stop, hold)], ramp))
+    before = np.linspace(0.0, stop - ramp, 50)
+    np.testing.assert_allclose(paused.pose7(before), free.pose7(before), atol=1e-12)
+    after = np.linspace(stop + hold + ramp, 6.0, 50)
+    np.testing.assert_allclose(paused.pose7(after), free.pose7(after - ramp - hold), atol=1e-9)
+    held = np.linspace(stop, stop + hold, 50)
+    np.testing.assert_allclose(paused.pose7(held), np.repeat(paused.pose7(np.array([stop])), 50, axis=0), atol=1e-12)
+    assert np.abs(paused.position(held, 1)).max() < 1e-12 and np.abs(paused.angular_velocity(held)).max() < 1e-12
+    t = np.linspace(0.0, 6.0, 60001)
+    h = t[1] - t[0]
+    p, v, a = paused.position(t), paused.position(t, 1), paused.position(t, 2)
+    scale_v, scale_a = np.abs(v).max(), np.abs(a).max()
+    assert np.abs(np.gradient(p, h, axis=0) - v)[1:-1].max() < 1e-5 * scale_v
+    assert np.abs(np.gradient(v, h, axis=0) - a)[1:-1].max() < 1e-4 * scale_a  # no jump: the warp is C2
+    R, _, v1, w1 = paused.kinematics(stop + 0.5 * hold)
+    assert np.abs(v1).max() < 1e-12 and np.abs(w1).max() < 1e-12
+    # the simulated IMU during the hold: no rotation, specific force of gravity's length (noise-free)
+    spec = SequenceSpec("pause", rig="tiny_stereo", trajectory="handheld", trajectory_seed=4, scene_seed=4, duration_s=3.0,
+                        pauses=[(1.0, 1.0)], imu_rate_hz=200.0, imu_noise=False)
+    assert SequenceSpec.from_dict(json.loads(json.dumps(spec.to_dict()))) == spec
+    sim = Simulator(spec)
+    imu = sim.imu()
+    rest = (imu.t >= 1.0e6) & (imu.t <= 2.0e6)
+    assert np.abs(imu.gyro[rest]).max() < 1e-9
+    np.testing.assert_allclose(np.linalg.norm(imu.acc[rest], axis=1), 9.81, atol=1e-9)
+    moving = np.linalg.norm(imu.gyro[imu.t < 0.5e6], axis=1)
+    assert moving.min() > 1e-3  # the unpaused part does move
+    with pytest.raises(DataError, match="pauses"):
+        Pauses([(0.2, 1.0)], 0.4)  # its ramp would start before t = 0
 
 
 # ---------------------------------------------------------------------------------------------

@@ -37,7 +37,7 @@ from .events import EventConfig, EventGenerator, log_intensity
 from .imu import imu_times_us, simulate_imu
 from .rig import load_rig, scale_rig
 from .scene import Scene, free_space, make_scene
-from .trajectory import Trajectory, check_inside, make_trajectory
+from .trajectory import Pauses, Trajectory, check_inside, make_trajectory
 
 SIM_VERSION = 1
 FRAME_WHITE = 1.0  # radiance that maps to 255 (a white wall under normal room light)
@@ -72,6 +72,9 @@ class SequenceSpec:
             one retraces the path's start after the return (see
             :func:`~aerovis_slam.sim.trajectory.make_trajectory`).
         speed: motion speed factor.
+        pauses: ``(t_stop_s, hold_s)`` stops: the camera comes to a halt at ``t_stop_s``, stands still for
+            ``hold_s`` and goes on along its path (:class:`~aerovis_slam.sim.trajectory.Pauses`).
+        pause_ramp_s: slowing and speeding-up time around each stop, seconds.
         duration_s: length in seconds.
         frame_rate_hz: frames and depth maps per second and camera (0: none).
         gt_rate_hz: ground-truth pose rate.
@@ -95,6 +98,8 @@ class SequenceSpec:
     loop: bool = False
     loop_period_s: float | None = None
     speed: float = 1.0
+    pauses: list = field(default_factory=list)
+    pause_ramp_s: float = 0.4
     duration_s: float = 4.0
     frame_rate_hz: float = 20.0
     gt_rate_hz: float = 200.0
@@ -109,6 +114,7 @@ class SequenceSpec:
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
         d["lights_off"] = [list(x) for x in self.lights_off]
+        d["pauses"] = [list(x) for x in self.pauses]
         d["user_textures"] = [str(x) for x in self.user_textures]
         return d
 
@@ -129,6 +135,7 @@ class SequenceSpec:
         if isinstance(d.get("events"), dict):
             d["events"] = EventConfig(**d["events"])
         d["lights_off"] = [tuple(x) for x in d.get("lights_off", [])]
+        d["pauses"] = [tuple(x) for x in d.get("pauses", [])]
         return cls(**d)
 
 
@@ -178,6 +185,8 @@ class Simulator:
         self.trajectory = trajectory if trajectory is not None else make_trajectory(
             spec.trajectory, np.random.default_rng(np.random.SeedSequence([spec.trajectory_seed, 0x7A5])),
             spec.duration_s, lo, hi, loop=spec.loop, speed=spec.speed, loop_period_s=spec.loop_period_s)
+        if spec.pauses:
+            self.trajectory = dataclasses.replace(self.trajectory, pauses=Pauses([tuple(x) for x in spec.pauses], spec.pause_ramp_s))
         self.cams = list(rig.cameras)
         self.T_body_cam = [rig.cameras[c].T_imu_cam for c in self.cams]
         check_inside(self.trajectory, self.scene, self.T_body_cam, name=spec.name)

@@ -18,6 +18,10 @@ Kinds (generators take the free space ``lo, hi`` of a scene and fit inside it):
 * ``slider``: a straight rest-to-rest glide sideways, fixed orientation.
 * ``static``: constant pose.
 
+Any kind can stop and hold still (:class:`Pauses`, ``SequenceSpec.pauses``): the camera slows to a halt,
+stands for a while and then goes on along the same path, as a hand-held camera put down for a moment
+does. The time warp is C2, so the IMU still sees a continuous acceleration.
+
 Example:
     >>> traj = make_trajectory("handheld", np.random.default_rng(0), 2.0, np.array([-1., -1, 1]), np.array([1., 1, 2]))
     >>> traj.pose7(np.array([0.0, 1.0])).shape
@@ -74,6 +78,67 @@ class Sinusoids:
                          np.concatenate([self.omega, extra.omega]), np.concatenate([self.phase, extra.phase]))
 
 
+def _smootherstep(x: np.ndarray, order: int = 0) -> np.ndarray:
+    """``S(x) = 6x^5 - 15x^4 + 10x^3`` on [0, 1] (0 and 1 with zero first and second derivative at the
+    ends): its integral (``order=-1``), value (0) or derivative (1)."""
+    x = np.clip(x, 0.0, 1.0)
+    if order == -1:
+        return x ** 6 - 3 * x ** 5 + 2.5 * x ** 4
+    if order == 0:
+        return x ** 3 * (10 - 15 * x + 6 * x * x)
+    return 30 * x * x * (1 - x) ** 2
+
+
+@dataclass
+class Pauses:
+    """A C2 time warp ``s(t)`` that stops the motion: ``T_world_body`` at time ``t`` is the underlying
+    path's at ``s(t)``.
+
+    Around each stop, the path's speed ``s'(t) = 1 - b(t)`` falls to zero over ``ramp_s`` before
+    ``t_stop_s`` (a smootherstep, so ``s''`` is continuous), stays zero for ``hold_s`` and rises again
+    over ``ramp_s``. Each stop consumes ``ramp_s + hold_s`` of wall time without advancing the path.
+
+    Attributes:
+        stops: ``(t_stop_s, hold_s)`` pairs in seconds of wall time, sorted and non-overlapping
+            (including their ramps).
+        ramp_s: slowing (and speeding-up) time in seconds.
+    """
+
+    stops: list = field(default_factory=list)
+    ramp_s: float = 0.4
+
+    def __post_init__(self) -> None:
+        self.stops = sorted((float(a), float(h)) for a, h in self.stops)
+        if self.ramp_s <= 0:
+            raise DataError(None, f"pause ramp_s must be > 0 s, got {self.ramp_s}")
+        end = -np.inf
+        for a, h in self.stops:
+            if h < 0 or a - self.ramp_s < max(end, 0.0):
+                raise DataError(None, f"pauses {self.stops}: each needs hold_s >= 0 and {self.ramp_s} s of ramp after "
+                                      f"t=0 and after the previous pause (ramp_s)")
+            end = a + h + self.ramp_s
+
+    def __call__(self, t: np.ndarray, order: int = 0) -> np.ndarray:
+        """``s(t)`` (order 0, s), ``s'(t)`` (1) or ``s''(t)`` (2, 1/s) at wall times ``t`` (s)."""
+        t = np.asarray(t, np.float64)
+        r = self.ramp_s
+        out = t.copy() if order == 0 else (np.ones_like(t) if order == 1 else np.zeros_like(t))
+        for a, h in self.stops:
+            x_in = (t - (a - r)) / r  # slowing: b rises 0 -> 1 over x_in in [0, 1]
+            x_out = (t - (a + h)) / r  # speeding up: b falls 1 -> 0 over x_out in [0, 1]
+            if order == 0:
+                # s = t - integral of b: r I(x_in) while slowing, + the hold, + r (1/2 - I(1 - x_out)) after
+                held = np.clip(t - a, 0.0, h)
+                out -= r * _smootherstep(x_in, -1) + held + r * (0.5 - _smootherstep(1 - x_out, -1)) * (x_out > 0)
+            elif order == 1:
+                out -= np.where(x_out <= 0, _smootherstep(x_in), _smootherstep(1 - x_out))
+            else:
+                rising = (x_in > 0) & (x_in < 1)
+                falling = (x_out > 0) & (x_out < 1)
+                out -= (rising * _smootherstep(x_in, 1) - falling * _smootherstep(1 - x_out, 1)) / r
+        return out
+
+
 @dataclass
 class Trajectory:
     """``T_world_body(t)`` from position and ZYX-Euler :class:`Sinusoids`.
@@ -83,12 +148,22 @@ class Trajectory:
         duration_s: length in seconds (evaluation outside ``[0, duration_s]`` is allowed but unused).
         pos: three functions, world x, y, z in metres.
         euler: three functions, yaw, pitch, roll in radians.
+        pauses: stops of the motion (None: none); every method evaluates the path at ``pauses(t)`` and
+            scales its derivatives by the chain rule.
     """
 
     kind: str
     duration_s: float
     pos: list[Sinusoids]
     euler: list[Sinusoids]
+    pauses: Pauses | None = None
+
+    def _warp(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Path time ``s(t)`` and its first two derivatives (1 and 0 without pauses)."""
+        t = np.asarray(t, np.float64)
+        if self.pauses is None or not self.pauses.stops:
+            return t, np.ones_like(t), np.zeros_like(t)
+        return self.pauses(t), self.pauses(t, 1), self.pauses(t, 2)
 
     def kinematics(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Fast single-time evaluation for the simulation loop.
@@ -107,9 +182,10 @@ class Trajectory:
                 amp[i, :len(f.amp)], om[i, :len(f.omega)], ph[i, :len(f.phase)] = f.amp, f.omega, f.phase
             pk = self._packed = (np.array([f.c0 for f in fs]), np.array([f.c1 for f in fs]), amp, om, ph)
         c0, c1, amp, om, ph = pk
-        arg = t_s * om + ph
-        f0 = c0 + c1 * t_s + (amp * np.sin(arg)).sum(1)
-        f1 = c1 + (amp * om * np.cos(arg)).sum(1)
+        s_t, ds, _ = (float(x) for x in self._warp(np.float64(t_s)))
+        arg = s_t * om + ph
+        f0 = c0 + c1 * s_t + (amp * np.sin(arg)).sum(1)
+        f1 = (c1 + (amp * om * np.cos(arg)).sum(1)) * ds
         psi, th, phi = f0[3:]
         dpsi, dth, dphi = f1[3:]
         cy, sy, cp, sp, cr, sr = np.cos(psi), np.sin(psi), np.cos(th), np.sin(th), np.cos(phi), np.sin(phi)
@@ -120,12 +196,23 @@ class Trajectory:
         return R, f0[:3], f1[:3], w
 
     def position(self, t: np.ndarray, order: int = 0) -> np.ndarray:
-        """(N, 3) world position (order 0, m), velocity (1, m/s) or acceleration (2, m/s²)."""
-        return np.stack([f(t, order) for f in self.pos], axis=-1)
+        """(N, 3) world position (order 0, m), velocity (1, m/s), acceleration (2, m/s²) or, without
+        pauses, any higher derivative."""
+        if self.pauses is None or not self.pauses.stops:
+            return np.stack([f(t, order) for f in self.pos], axis=-1)
+        s_t, ds, dds = self._warp(t)
+        if order == 0:
+            return np.stack([f(s_t) for f in self.pos], axis=-1)
+        if order == 1:
+            return np.stack([f(s_t, 1) * ds for f in self.pos], axis=-1)
+        if order == 2:  # d²/dt² f(s(t)) = f''(s) s'^2 + f'(s) s''
+            return np.stack([f(s_t, 2) * ds * ds + f(s_t, 1) * dds for f in self.pos], axis=-1)
+        raise ValueError(f"position derivative order must be 0, 1 or 2 on a trajectory with pauses, got {order}")
 
     def rotation(self, t: np.ndarray) -> np.ndarray:
         """(N, 3, 3) ``R_world_body``."""
-        psi, th, ph = (f(t) for f in self.euler)
+        s_t = self._warp(t)[0]
+        psi, th, ph = (f(s_t) for f in self.euler)
         cy, sy, cp, sp, cr, sr = np.cos(psi), np.sin(psi), np.cos(th), np.sin(th), np.cos(ph), np.sin(ph)
         R = np.empty(np.shape(psi) + (3, 3))
         R[..., 0, 0] = cy * cp
@@ -145,8 +232,9 @@ class Trajectory:
         For ``R = Rz(psi) Ry(theta) Rx(phi)``: ``omega_body = (phi' - psi' sin(theta),
         theta' cos(phi) + psi' sin(phi) cos(theta), -theta' sin(phi) + psi' cos(phi) cos(theta))``.
         """
-        psi, th, ph = (f(t) for f in self.euler)
-        dpsi, dth, dph = (f(t, 1) for f in self.euler)
+        s_t, ds, _ = self._warp(t)
+        psi, th, ph = (f(s_t) for f in self.euler)
+        dpsi, dth, dph = (f(s_t, 1) * ds for f in self.euler)
         return np.stack([
             dph - dpsi * np.sin(th),
             dth * np.cos(ph) + dpsi * np.sin(ph) * np.cos(th),
@@ -165,7 +253,7 @@ class Trajectory:
     def pose7(self, t: np.ndarray) -> np.ndarray:
         """(N, 7) ``tx ty tz qx qy qz qw`` of ``T_world_body`` (the canonical GT format)."""
         t = np.atleast_1d(np.asarray(t, np.float64))
-        psi, th, ph = (f(t) / 2 for f in self.euler)
+        psi, th, ph = (f(self._warp(t)[0]) / 2 for f in self.euler)
         cy, sy, cp, sp, cr, sr = np.cos(psi), np.sin(psi), np.cos(th), np.sin(th), np.cos(ph), np.sin(ph)
         q = np.stack([
             sr * cp * cy - cr * sp * sy,
