@@ -26,7 +26,7 @@ from aerovis_slam.slam.detectors import StereoClassicalDetector
 from aerovis_slam.slam.frontend import project_landmarks
 from aerovis_slam.slam.odometry import StereoInertialOdometry
 from aerovis_slam.slam.imu import (ImuStream, align_visual_inertial, gravity_from_velocity_change, new_preintegration,
-                                  preintegration_params)
+                                  preintegration_params, standstill_chi2)
 from aerovis_slam.slam.pipeline import check_frame_slots, run_slam
 from aerovis_slam.slam.ransac import (bearings, pnp_ransac, position_given_rotation, project_points, reprojection_error,
                                       rotation_error_deg, rotation_ransac)
@@ -192,6 +192,52 @@ def test_position_given_rotation_measures_errors_in_pixels_of_each_axis():
 def _tiny_sim(imu_noise: bool, rate: float = 1000.0) -> Simulator:
     return Simulator(SequenceSpec("imu", rig="tiny_stereo", trajectory="handheld", trajectory_seed=3, scene_seed=3,
                                   duration_s=1.0, imu_noise=imu_noise, imu_rate_hz=rate))
+
+
+def test_standstill_statistic_is_chi_square_at_rest_and_rejects_motion():
+    """At rest the statistic sums six squared standard normals: over 400 windows of 20 ms with the
+    floors at zero its mean is 6 (standard error sqrt(12 / 400) = 0.17; the bound is 4.7 of those) and
+    about 0.1 % exceed 22.5, whatever the attitude and biases; against a reference that is itself a
+    window's mean (``reference_window_s``) as well. Over the default 0.1 s window with the default
+    floors (variances 1.1e-4 (rad/s)² and 0.060 (m/s²)² per axis at the DAVIS IMU's densities), 30
+    deg/s of rotation gives ~2500 and 3 m/s² of horizontal acceleration ~150, where the specific force's
+    length alone (0.45 m/s² longer) would give ~3.4."""
+    from aerovis_slam.calib import ImuNoise
+
+    rng = np.random.default_rng(0)
+    noise = ImuNoise(accelerometer_noise_density=0.0448, gyroscope_noise_density=0.00314, update_rate=1000.0)
+    R_wb = so3_exp(np.array([0.3, -0.2, 1.0]))  # tilted: gravity is not along body z
+    b_acc, b_gyro = np.array([0.1, -0.05, 0.2]), np.array([0.01, 0.0, -0.02])
+    n = 8000
+    t = np.arange(n, dtype=np.int64) * 1000  # 1 kHz
+    sd_acc, sd_gyro = noise.accelerometer_noise_density * np.sqrt(1000.0), noise.gyroscope_noise_density * np.sqrt(1000.0)
+    f_rest = R_wb.T @ np.array([0.0, 0.0, 9.81])
+    acc_at_rest = b_acc + f_rest  # what the estimates predict (tracking: bias + R_world_body^T g)
+
+    def stream(acc, gyro):
+        return ImuStream(ImuSamples(t, gyro + b_gyro + rng.normal(0, sd_gyro, (n, 3)), acc + b_acc + rng.normal(0, sd_acc, (n, 3))))
+
+    rest = stream(np.tile(f_rest, (n, 1)), np.zeros((n, 3)))
+    # windows of 20 samples: [k * 20 ms, k * 20 ms + 19 ms]
+    exact = np.array([standstill_chi2(rest, k * 20_000, k * 20_000 + 19_000, b_gyro, acc_at_rest, noise, gyro_floor_rad_s=0.0,
+                                      acc_floor_m_s2=0.0)[0] for k in range(400)])
+    assert abs(exact.mean() - 6.0) < 0.8, exact.mean()
+    assert (exact > 22.5).mean() < 0.01
+    # against the first 0.1 s's means: both windows' noise counts (variance density^2 (1/T + 1/T_ref))
+    _, gyro_ref, acc_ref, ref_s = standstill_chi2(rest, 0, 99_000, b_gyro, acc_at_rest, noise, gyro_floor_rad_s=0.0, acc_floor_m_s2=0.0)
+    assert ref_s == pytest.approx(0.1)
+    relative = np.array([standstill_chi2(rest, k * 20_000, k * 20_000 + 19_000, gyro_ref, acc_ref, noise, gyro_floor_rad_s=0.0,
+                                         acc_floor_m_s2=0.0, reference_window_s=ref_s)[0] for k in range(5, 400)])
+    assert abs(relative.mean() - 6.0) < 0.8 * 2, relative.mean()  # the windows share one reference: a looser bound
+    kw = dict(gyro_floor_rad_s=0.003, acc_floor_m_s2=0.2)  # the defaults (tracking.still_*)
+    assert standstill_chi2(rest, 0, 99_000, b_gyro, acc_at_rest, noise, **kw)[0] < 22.5
+    turning = stream(np.tile(f_rest, (n, 1)), np.tile(R_wb.T @ np.radians([0.0, 0.0, 30.0]), (n, 1)))
+    assert standstill_chi2(turning, 0, 99_000, b_gyro, acc_at_rest, noise, **kw)[0] > 40 * 22.5
+    a_world = np.array([3.0, 0.0, 0.0])
+    pushed = stream(np.tile(R_wb.T @ (a_world + [0.0, 0.0, 9.81]), (n, 1)), np.zeros((n, 3)))
+    assert abs(np.linalg.norm(a_world + [0.0, 0.0, 9.81]) - 9.81) < 0.46  # the length alone would hardly see it
+    assert standstill_chi2(pushed, 0, 99_000, b_gyro, acc_at_rest, noise, **kw)[0] > 3 * 22.5
+    assert standstill_chi2(rest, 10**9, 10**9 + 1, b_gyro, acc_at_rest, noise, **kw)[0] == np.inf  # no samples: not at rest
 
 
 @pytest.mark.parametrize("noise", [False, True])
@@ -1331,22 +1377,27 @@ def _with_gaps(src, dst, *, imu_gap_s=(0.8, 0.9), no_events_s=(1.0, 1.3)):
     return dst
 
 
-def test_pipeline_survives_imu_gap_and_missing_events(small_flight, tmp_path):
-    """100 ms without IMU samples and 300 ms without any event (a static or dark stretch): the run
-    warns, propagates with the IMU (interpolated across the gap), re-acquires the map and ends
-    complete. The bound is twice the one of the undisturbed flight: 300 ms of IMU-only propagation
-    at the BMI160's noise adds millimetres, the re-acquired map the rest."""
-    path = _with_gaps(small_flight, tmp_path / "gaps.h5")
+@pytest.mark.parametrize("dark_s, losses", [(0.3, 0), (0.6, 1)])
+def test_pipeline_survives_imu_gap_and_missing_events(small_flight, tmp_path, dark_s, losses):
+    """100 ms without IMU samples and a stretch without any event while flying (a dark stretch): the
+    run warns, propagates with the IMU (interpolated across the gap), tracks again and ends complete.
+    Frames without new events count towards ``tracking.loss_time_s`` (0.5 s) only, not towards
+    ``loss_frames``: after 300 ms (15 frames at 50 Hz) the map is kept and tracking resumes on it;
+    after 600 ms tracking is lost once, the backend restarts from the last tracked velocity and a new
+    stereo map, and no second loss follows. The IMU says the drone moves throughout, so it is never
+    taken for a standstill. The bound is twice the one of the undisturbed flight: the IMU-only
+    propagation at the BMI160's noise adds millimetres, the re-acquired map the rest."""
+    end_s = 1.0 + dark_s
+    path = _with_gaps(small_flight, tmp_path / "gaps.h5", no_events_s=(1.0, end_s))
     res = run_slam(path, StereoClassicalDetector("orb", 300), load_config("accurate"), mode="sync", progress=False)
     assert res.status == "ok" and res.complete
     assert any("IMU gap" in w for w in res.warnings)
     assert any("IMU only" in w for w in res.warnings)
+    assert not any("at rest" in w for w in res.warnings)
     t = res.t_us
-    dark = (t >= 1.05e6) & (t < 1.3e6)
-    assert not res.tracked[dark].any() and res.tracked[t > 1.6e6].mean() > 0.8  # tracked again afterwards
-    # 300 ms without events at 50 Hz is 15 untracked frames: one tracking loss (after 10), the backend
-    # restarts from the last tracked velocity and a new stereo map, and no second loss follows
-    assert res.tracking_losses == 1 and any("tracking lost" in w for w in res.warnings)
+    dark = (t >= 1.05e6) & (t < end_s * 1e6)
+    assert not res.tracked[dark].any() and res.tracked[t > (end_s + 0.3) * 1e6].mean() > 0.8  # tracked again afterwards
+    assert res.tracking_losses == losses and any("tracking lost" in w for w in res.warnings) == bool(losses)
     with Sequence(path) as s:
         gt = s.gt
     r = ate(gt, PoseSamples(res.t_us, res.pose7), align="se3")
@@ -1356,6 +1407,48 @@ def test_pipeline_survives_imu_gap_and_missing_events(small_flight, tmp_path):
     assert not np.allclose(res.pose7_final[dark], res.pose7[dark])
     rf = ate(gt, PoseSamples(res.t_us, res.pose7_final), align="se3")
     assert rf["ate_rmse_m"] < 0.12 * rf["path_length_m"]
+
+
+@pytest.fixture(scope="module")
+def flight_with_a_stop(tmp_path_factory):
+    """The small flight's drone comes to rest at 2.5 s for 1 s and flies on, on a quiet sensor (0.02
+    Hz/px of noise events: under ``input.min_new_events_per_px`` while it stands); ~4 s to simulate."""
+    from aerovis_slam.sim.events import EventConfig
+
+    spec = SequenceSpec("stop", rig="drone424", rig_scale=0.5, trajectory="drone8", trajectory_seed=5, scene_seed=5,
+                        duration_s=4.9, frame_rate_hz=0, gt_rate_hz=200, pauses=[(2.5, 1.0)],
+                        events=EventConfig(leak_hz=0.01, shot_noise_hz=0.01))
+    path = tmp_path_factory.mktemp("slam") / "stop.h5"
+    write_sequence(spec, path)
+    return path
+
+
+@pytest.mark.parametrize("zero_velocity", [True, False])
+def test_a_camera_at_rest_keeps_its_map(flight_with_a_stop, zero_velocity):
+    """A drone that lands for a second sends (almost) no events. With ``tracking.zero_velocity`` the
+    IMU test finds it at rest within a few frames of the halt; from then on its pose is held, so it
+    moves by less than 1 cm while it stands (the smoother's update at the rest keyframe moves it by
+    millimetres), nothing counts towards a tracking loss, and it tracks on the same map when it
+    flies on. Without it, the IMU-only propagation carries the estimate's bias error: the standing
+    drone drifts by centimetres and after ``loss_time_s`` the map is dropped."""
+    cfg = load_config("accurate")
+    cfg.tracking.zero_velocity = zero_velocity
+    res = run_slam(flight_with_a_stop, StereoClassicalDetector("orb", 300), cfg, mode="sync", progress=False)
+    assert res.status == "ok" and res.complete
+    t = res.t_us
+    standing = (t >= 2.6e6) & (t <= 3.5e6)  # the halt's first 0.1 s is the IMU test's window
+    drift_m = np.linalg.norm(res.pose7[standing, :3] - res.pose7[standing, :3][0], axis=1).max()
+    with Sequence(flight_with_a_stop) as s:
+        gt = s.gt
+    r = ate(gt, PoseSamples(res.t_us, res.pose7), align="se3")
+    if zero_velocity:
+        assert any("at rest" in w for w in res.warnings)
+        assert drift_m < 0.01 and res.tracking_losses == 0
+        assert res.tracked[t > 4.0e6].mean() > 0.8
+        assert r["ate_rmse_m"] < 0.06 * r["path_length_m"]  # the undisturbed flight's bound
+    else:
+        assert not any("at rest" in w for w in res.warnings)
+        assert drift_m > 0.03 and res.tracking_losses == 1
 
 
 def test_event_bursts_above_the_rate_cap_warn_and_the_run_continues(small_flight):

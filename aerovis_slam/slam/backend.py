@@ -337,7 +337,8 @@ class KeyframeSmoother:
         return key
 
     def add_keyframe(self, kf_id: int, pim: gtsam.PreintegratedCombinedMeasurements, guess: NavEstimate,
-                     obs: Observations, landmark_positions: dict[int, np.ndarray]) -> SmootherUpdate:
+                     obs: Observations, landmark_positions: dict[int, np.ndarray],
+                     zero_velocity_sigma: float | None = None) -> SmootherUpdate:
         """Add keyframe ``kf_id`` (IMU factor from the previous keyframe) and its observations, optimise.
 
         Args:
@@ -346,6 +347,8 @@ class KeyframeSmoother:
             obs: its landmark observations (left and right).
             landmark_positions: world positions (3,) of every landmark in ``obs`` (initial values of
                 landmarks new to the window).
+            zero_velocity_sigma: the body is at rest: a prior holds the keyframe's velocity at zero
+                with this sigma (m/s; None: no prior).
         Returns:
             a :class:`SmootherUpdate`. Raises RuntimeError (gtsam's) when the system is degenerate.
         """
@@ -363,6 +366,8 @@ class KeyframeSmoother:
         values.insert(B(kf_id), guess.bias)
         for k in (X(kf_id), V(kf_id), B(kf_id)):
             stamps[k] = float(seq)
+        if zero_velocity_sigma is not None:
+            graph.add(gtsam.PriorFactorVector(V(kf_id), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, zero_velocity_sigma)))
         dropped, new_keys = self._add_observations(graph, values, stamps, kf_id, seq, obs, landmark_positions)
         remove = self._observations_to_drop(seq)
         # Iteration budget: as many LM iterations as the measured cost allows (at least one).

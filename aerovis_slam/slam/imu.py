@@ -136,6 +136,46 @@ class ImuStream:
         return self.acc[m].mean(axis=0)
 
 
+def standstill_chi2(stream: ImuStream, t0_us: int, t1_us: int, gyro_at_rest: np.ndarray, acc_at_rest: np.ndarray,
+                    noise: ImuNoise | None, *, gyro_floor_rad_s: float, acc_floor_m_s2: float,
+                    reference_window_s: float | None = None) -> tuple[float, np.ndarray, np.ndarray, float]:
+    """How well the IMU samples in ``[t0_us, t1_us]`` fit a body at rest: a chi-square statistic with 6
+    degrees of freedom (``inf`` without samples).
+
+    At rest the mean gyroscope reading is its bias and the mean specific force is the accelerometer's
+    bias plus gravity seen from the body, ``R_world_body^T (0, 0, g)``: the whole vector, not its length,
+    so that a horizontal push, which barely changes the length, is caught. Each axis's difference is
+    divided by its variance: the white noise averaged over the window (``density^2 / T``, ``T`` the
+    samples' count over the IMU rate), the same for a reference that is itself a window's mean, and a
+    floor for what the expected readings get wrong (bias and attitude estimates). A constant velocity
+    fits as well as rest does: the caller rules it out (the odometry's speed gate).
+
+    Args:
+        stream: the IMU samples.
+        t0_us, t1_us: the window (µs).
+        gyro_at_rest, acc_at_rest: (3,) the readings expected at rest (rad/s, m/s²): from the estimates
+            (``b_g`` and ``b_a + R_world_body^T (0, 0, g)``) or an earlier window's means at rest.
+        noise: the IMU's noise densities (None: :class:`~aerovis_slam.calib.ImuNoise` defaults).
+        gyro_floor_rad_s, acc_floor_m_s2: the floors (1 sigma per axis) in rad/s and m/s².
+        reference_window_s: the expected readings are means over a window this long (s; None: exact).
+    Returns:
+        ``(chi2, gyro_mean, acc_mean, window_s)``: the statistic, this window's mean readings and length.
+    """
+    noise = noise or ImuNoise()
+    m = (stream.t >= t0_us) & (stream.t <= t1_us)
+    n = int(m.sum())
+    if n == 0:
+        return float("inf"), np.full(3, np.nan), np.full(3, np.nan), 0.0
+    dt_s = float(np.median(np.diff(stream.t))) * 1e-6 if len(stream.t) > 1 else 1.0 / noise.update_rate
+    window_s = n * dt_s  # the noise of a mean of n samples is density / sqrt(n dt)
+    gyro_mean, acc_mean = stream.gyro[m].mean(axis=0), stream.acc[m].mean(axis=0)
+    d_gyro, d_acc = gyro_mean - np.asarray(gyro_at_rest, np.float64), acc_mean - np.asarray(acc_at_rest, np.float64)
+    inv_t = 1.0 / window_s + (1.0 / reference_window_s if reference_window_s else 0.0)
+    var_gyro = noise.gyroscope_noise_density ** 2 * inv_t + gyro_floor_rad_s ** 2
+    var_acc = noise.accelerometer_noise_density ** 2 * inv_t + acc_floor_m_s2 ** 2
+    return float(d_gyro @ d_gyro / var_gyro + d_acc @ d_acc / var_acc), gyro_mean, acc_mean, window_s
+
+
 def rotation_aligning(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The smallest rotation ``R`` with ``R a/|a| = b/|b|`` (3, 3)."""
     a = np.asarray(a, np.float64) / np.linalg.norm(a)

@@ -54,7 +54,7 @@ from .config import SlamConfig
 from .frontend import (KeyframeSelector, LandmarkMap, edge_shapes, match_to_map, spread_subset, structure_tensor,
                        supported_keypoints)
 from .imu import (GRAVITY, ImuStream, align_visual_inertial, gravity_from_velocity_change, gravity_rotation_from_acc,
-                  new_preintegration, preintegration_params)
+                  new_preintegration, preintegration_params, standstill_chi2)
 from .ransac import bearings, pnp_ransac, position_given_rotation, relative_pose_ransac, reprojection_error, rotation_ransac
 from .refine import TrackRefiner, alignment_images
 from .stereo import match_stereo, triangulate, uses_row_search
@@ -162,6 +162,7 @@ class StereoInertialOdometry:
         self.refiner = TrackRefiner(rc.window_px, rc.max_shift_px, rc.max_fb_px, rc.max_anchor_age_s) if rc.enabled else None
         self.stream = stream
         self.cfg = cfg
+        self.noise = noise
         self.params = preintegration_params(noise)
         self.loop_closer = loop_closer
         self.log = log or WarningLog()
@@ -183,6 +184,7 @@ class StereoInertialOdometry:
         self.fail_count = 0
         self.t_last_good: int | None = None
         self.lost = False
+        self.rest: tuple[np.ndarray, np.ndarray, float] | None = None  # at rest: reference (gyro, acc, window s)
         self.tracking_losses = 0
         self.pose_refits = 0  # frames tracked by the loosened refit (tracking.refit_on_disagreement)
         self.recent_velocities: deque[np.ndarray] = deque(maxlen=10)  # of visually tracked frames (initialised)
@@ -287,13 +289,15 @@ class StereoInertialOdometry:
             new_events: events ingested (both cameras) since the previous frame. Below
                 ``input.min_new_events_per_px`` the time surfaces are those of the previous frame (a
                 static or dark stretch): they carry no information about the motion since, so the
-                frame is propagated with the IMU alone (a static camera's IMU says static anyway).
+                frame is propagated with the IMU alone, or held where the IMU says the camera is at rest
+                (``tracking.zero_velocity``).
         """
         cfg = self.cfg
         if new_events is not None and self.t_last is not None:
             min_ev = cfg.input.min_new_events_per_px * self.cams.left.width * self.cams.left.height
             if new_events < min_ev:
                 return self._imu_only_frame(tau, f"{new_events} new events (< {min_ev:.0f})")
+        self.rest = None  # events again: whatever the IMU says, tracking takes over
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
         kpL, kpR = self._detect(detector, batch)
@@ -481,18 +485,39 @@ class StereoInertialOdometry:
                            self.T_corr.copy())
 
     def _imu_only_frame(self, tau: int, why: str) -> FrameResult:
-        """A frame without visual information: IMU propagation, failure bookkeeping, loop corrections."""
+        """A frame without visual information: IMU propagation (or, at rest, the held pose), failure
+        bookkeeping, loop corrections."""
         t0 = time.perf_counter()
         self.frame += 1
+        if self.rest is not None and self._stays_at_rest(self.t_last, tau):
+            return self._held_frame(tau, why, t0)
+        self.rest = None
+        t_prev = self.t_last
         state = self._predict(tau)
-        self.log.warn("no-events", f"t={tau} µs: {why}: frame propagated with the IMU only")
-        if self._visual_failure(tau):
-            state = self._recover(tau, state)
-        if self.initialized and self.kf_t is not None and (tau - self.kf_t) * 1e-6 >= self.cfg.keyframes.max_interval_s:
-            # keep the smoother's IMU chain bounded: a keyframe with the IMU factor only
+        rest = self._comes_to_rest(t_prev, tau, state)
+        if rest is not None:
+            # The time surfaces are unchanged because nothing moved: the map stays valid. A keyframe
+            # now holds the velocity at zero; until the body moves again its pose is held and no IMU
+            # sample is integrated (integrated, the bias error would move a body at rest).
+            self.log.warn("still", f"t={tau} µs: {why}, and the IMU says the camera is at rest: pose held, velocity zero, map kept")
             self.kf_id += 1
-            state = self._smoother_keyframe(self.kf_id, tau, state, Observations.empty(), {}, update_landmarks=False)
+            state = self._smoother_keyframe(self.kf_id, tau, NavEstimate(state.T_world_body, np.zeros(3), state.bias),
+                                            Observations.empty(), {}, update_landmarks=False, zero_velocity=True)
             self.kf_t = tau
+            self.rest = rest
+            self.t_last_good = tau
+        else:
+            self.log.warn("no-events", f"t={tau} µs: {why}: frame propagated with the IMU only")
+            # unchanged time surfaces say nothing against the map, so only the time without vision
+            # (loss_time_s) counts, not the frames: a camera slowing to a halt sends few events for
+            # several frames before the IMU can tell that it is at rest
+            if self._visual_failure(tau, count_frame=False):
+                state = self._recover(tau, state)
+            if self.initialized and self.kf_t is not None and (tau - self.kf_t) * 1e-6 >= self.cfg.keyframes.max_interval_s:
+                # keep the smoother's IMU chain bounded: a keyframe with the IMU factor only
+                self.kf_id += 1
+                state = self._smoother_keyframe(self.kf_id, tau, state, Observations.empty(), {}, update_landmarks=False)
+                self.kf_t = tau
         self.state = state
         self.t_last = tau
         if not self.initialized:
@@ -502,10 +527,51 @@ class StereoInertialOdometry:
         self._poll_loop_closer()
         return self._result(tau, False, False, 0, {"tracking": (time.perf_counter() - t0) * 1e3})
 
-    def _visual_failure(self, tau: int) -> bool:
-        """Count a frame without visual tracking; declare a tracking loss when they pile up (True)."""
+    def _held_frame(self, tau: int, why: str, t0: float) -> FrameResult:
+        """A frame at rest: the pose of the keyframe that came to rest, zero velocity. The IMU's
+        preintegration skips the rest (it starts again from this frame's time), which the body's rest
+        makes exact: the next keyframe's IMU factor sees the rest keyframe's state at its end."""
+        self.log.warn("still", f"t={tau} µs: {why}, and the IMU says the camera is at rest: pose held, velocity zero, map kept")
+        self.state = NavEstimate(self.kf_state.T_world_body.copy(), np.zeros(3), self.kf_state.bias)
+        self.t_last = self.t_last_good = tau
+        self._poll_loop_closer()
+        return self._result(tau, False, False, 0, {"tracking": (time.perf_counter() - t0) * 1e3})
+
+    def _comes_to_rest(self, t0: int, t1: int, state: NavEstimate) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """Whether the body is at rest over ``[t0, t1]`` µs (``tracking.zero_velocity``): after
+        initialisation, with a tracked map, the speed estimate under the gate and the IMU samples of at
+        least the last ``still_window_s`` fitting the readings that the state's bias and attitude
+        predict at rest (:func:`~aerovis_slam.slam.imu.standstill_chi2`). Returns the window's mean
+        readings and length (the reference that :meth:`_stays_at_rest` compares with), or None."""
+        tc = self.cfg.tracking
+        if not (tc.zero_velocity and self.initialized and not self.lost):
+            return None
+        if float(np.linalg.norm(state.v_world)) > tc.still_max_speed_m_s:
+            return None
+        b = state.bias
+        acc_at_rest = np.asarray(b.accelerometer()) + state.T_world_body[:3, :3].T @ np.array([0.0, 0.0, GRAVITY])
+        chi2, gyro_mean, acc_mean, window_s = standstill_chi2(
+            self.stream, min(t0, t1 - int(tc.still_window_s * 1e6)), t1, np.asarray(b.gyroscope()), acc_at_rest, self.noise,
+            gyro_floor_rad_s=tc.still_gyro_floor_rad_s, acc_floor_m_s2=tc.still_acc_floor_m_s2)
+        return (gyro_mean, acc_mean, window_s) if chi2 <= tc.still_chi2 else None
+
+    def _stays_at_rest(self, t0: int, t1: int) -> bool:
+        """Whether a body at rest still is: the IMU samples since the previous frame (at least the last
+        ``still_window_s``) against the mean readings of the window in which it came to rest. Unlike
+        that first test this needs no estimate, so an update of the bias at the rest keyframe cannot
+        end the rest."""
+        tc = self.cfg.tracking
+        gyro_ref, acc_ref, ref_s = self.rest
+        chi2 = standstill_chi2(self.stream, min(t0, t1 - int(tc.still_window_s * 1e6)), t1, gyro_ref, acc_ref, self.noise,
+                               gyro_floor_rad_s=tc.still_gyro_floor_rad_s, acc_floor_m_s2=tc.still_acc_floor_m_s2,
+                               reference_window_s=ref_s)[0]
+        return chi2 <= tc.still_chi2
+
+    def _visual_failure(self, tau: int, count_frame: bool = True) -> bool:
+        """Count a frame without visual tracking; declare a tracking loss when they pile up (True).
+        ``count_frame=False``: a frame without new events, which counts towards ``loss_time_s`` only."""
         cfg = self.cfg
-        self.fail_count += 1
+        self.fail_count += int(count_frame)
         lost_time = (tau - self.t_last_good) * 1e-6 >= cfg.tracking.loss_time_s
         if self.initialized and not self.lost and (self.fail_count >= cfg.tracking.loss_frames or lost_time):
             self.lost = True
@@ -658,10 +724,11 @@ class StereoInertialOdometry:
         return {int(j): self.lmap.pos[j] for j in np.unique(obs.landmark)}
 
     def _smoother_keyframe(self, kf: int, tau: int, state: NavEstimate, obs: Observations, positions: dict,
-                           *, update_landmarks: bool = True) -> NavEstimate:
+                           *, update_landmarks: bool = True, zero_velocity: bool = False) -> NavEstimate:
         """Add keyframe ``kf`` (initial state ``state``) to the smoother, restarting it at ``state``
         when gtsam fails; its estimate becomes ``kf_state`` and starts a fresh preintegration.
-        ``update_landmarks``: copy the window's landmark estimates back into the map."""
+        ``update_landmarks``: copy the window's landmark estimates back into the map; ``zero_velocity``:
+        the body is at rest (a prior holds the keyframe's velocity at zero)."""
         est = state
         if self.pim.deltaTij() <= 0.0:
             # a second keyframe at the time of the smoother's newest: the backend was restarted at this
@@ -671,7 +738,8 @@ class StereoInertialOdometry:
             self._restart_smoother(kf, tau, state, sigma_vel=self._restart_sigma_vel)
         else:
             try:
-                self.smoother.add_keyframe(kf, self.pim, state, obs, positions)
+                self.smoother.add_keyframe(kf, self.pim, state, obs, positions,
+                                           zero_velocity_sigma=self.cfg.tracking.still_velocity_sigma_m_s if zero_velocity else None)
                 _, est = self.smoother.latest
                 if update_landmarks:
                     for j, p in self.smoother.landmark_estimates().items():
