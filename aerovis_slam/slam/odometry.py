@@ -185,7 +185,6 @@ class StereoInertialOdometry:
         self.t_last_good: int | None = None
         self.lost = False
         self.rest: tuple[np.ndarray, np.ndarray, float] | None = None  # at rest: reference (gyro, acc, window s)
-        self.rest_kf = -1  # the newest keyframe that came to rest
         self.tracking_losses = 0
         self.pose_refits = 0  # frames tracked by the loosened refit (tracking.refit_on_disagreement)
         self.recent_velocities: deque[np.ndarray] = deque(maxlen=10)  # of visually tracked frames (initialised)
@@ -501,14 +500,10 @@ class StereoInertialOdometry:
             # now holds the velocity at zero; until the body moves again its pose is held and no IMU
             # sample is integrated (integrated, the bias error would move a body at rest).
             self.log.warn("still", f"t={tau} µs: {why}, and the IMU says the camera is at rest: pose held, velocity zero, map kept")
-            if self.rest_kf != self.kf_id:
-                self.kf_id += 1
-                state = self._smoother_keyframe(self.kf_id, tau, NavEstimate(state.T_world_body, np.zeros(3), state.bias),
-                                                Observations.empty(), {}, update_landmarks=False, zero_velocity=True)
-                self.kf_t = tau
-                self.rest_kf = self.kf_id
-            # else the newest keyframe already came to rest (frames with a few noise events in between):
-            # hold it rather than fill the smoother's window with rest keyframes
+            self.kf_id += 1
+            state = self._smoother_keyframe(self.kf_id, tau, NavEstimate(state.T_world_body, np.zeros(3), state.bias),
+                                            Observations.empty(), {}, update_landmarks=False, zero_velocity=True)
+            self.kf_t = tau
             self.rest = rest
             self.t_last_good = tau
         else:
