@@ -83,6 +83,7 @@ from ..fileio import atomic_write_bytes
 from ..geometry import invert_T, pose_difference, project, rot_to_quat, rotation_angle_deg, so3_exp, transform_points
 from ..keypoints import Keypoints, match_keypoints, pair_similarity
 from .frontend import window_matches
+from .ransac import rvec_tvec_to_T
 
 log = logging.getLogger(__name__)
 
@@ -873,9 +874,7 @@ class LoopCloser:
         c = self.config
         if int(match.point_valid.sum()) <= len(obj):
             return obj, img, rvec, tvec
-        T_cq_mb = np.eye(4)
-        T_cq_mb[:3, :3], T_cq_mb[:3, 3] = cv2.Rodrigues(rvec)[0], np.ravel(tvec)
-        pairs = self._projected_pairs(query, match, T_cq_mb, float(c["rematch_window_px"]))
+        pairs = self._projected_pairs(query, match, rvec_tvec_to_T(rvec, tvec), float(c["rematch_window_px"]))
         if len(pairs) <= len(obj):
             return obj, img, rvec, tvec
         obj2 = np.ascontiguousarray(match.points_body[pairs[:, 1]], np.float64)
@@ -893,10 +892,7 @@ class LoopCloser:
     @staticmethod
     def _pnp_to_relative(params: np.ndarray, T_body_cam: np.ndarray) -> np.ndarray:
         """PnP's (rvec, tvec) of ``T_cam_matchbody`` -> ``T_match_query`` (the query body in the match body frame)."""
-        T_cam_match = np.eye(4)
-        T_cam_match[:3, :3] = cv2.Rodrigues(np.asarray(params[:3], np.float64))[0]
-        T_cam_match[:3, 3] = params[3:]
-        return invert_T(T_body_cam @ T_cam_match)
+        return invert_T(T_body_cam @ rvec_tvec_to_T(params[:3], params[3:]))
 
     def _pnp_covariance(self, obj, img, K, rvec, tvec, T_body_cam, T_match_query) -> np.ndarray | None:
         """(6, 6) covariance of ``T_match_query`` in gtsam's Pose3 tangent (rotation, translation).

@@ -36,7 +36,8 @@ def reprojection_error(points_world: np.ndarray, T_cam_world: np.ndarray, K: np.
     return np.nan_to_num(e, nan=np.inf)
 
 
-def _to_T(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+def rvec_tvec_to_T(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """OpenCV's (rvec, tvec) (Rodrigues vector, translation) -> the (4, 4) transform they describe."""
     T = np.eye(4)
     T[:3, :3] = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3))[0]
     T[:3, 3] = np.asarray(tvec, np.float64).reshape(3)
@@ -75,7 +76,7 @@ def pnp_ransac(points_world: np.ndarray, xy: np.ndarray, K: np.ndarray, *, repro
     except cv2.error:
         ok, idx = False, None
     if ok and idx is not None and len(idx) >= 4:
-        best_T = _to_T(rvec, tvec)
+        best_T = rvec_tvec_to_T(rvec, tvec)
         inl[idx.ravel()] = True
     if T_guess is not None:
         guess_inl = reprojection_error(points_world, T_guess, K, xy) <= reproj_px
@@ -87,7 +88,7 @@ def pnp_ransac(points_world: np.ndarray, xy: np.ndarray, K: np.ndarray, *, repro
         rvec = cv2.Rodrigues(best_T[:3, :3])[0]
         tvec = best_T[:3, 3].reshape(3, 1).copy()
         rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, None, rvec, tvec)
-        best_T = _to_T(rvec, tvec)
+        best_T = rvec_tvec_to_T(rvec, tvec)
         new_inl = reprojection_error(points_world, best_T, K, xy) <= reproj_px
         if new_inl.sum() < 4:
             break
