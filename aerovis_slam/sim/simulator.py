@@ -186,7 +186,7 @@ class Simulator:
             spec.trajectory, np.random.default_rng(np.random.SeedSequence([spec.trajectory_seed, 0x7A5])),
             spec.duration_s, lo, hi, loop=spec.loop, speed=spec.speed, loop_period_s=spec.loop_period_s)
         if spec.pauses:
-            self.trajectory = dataclasses.replace(self.trajectory, pauses=Pauses([tuple(x) for x in spec.pauses], spec.pause_ramp_s))
+            self.trajectory = dataclasses.replace(self.trajectory, pauses=Pauses(spec.pauses, spec.pause_ramp_s))
         self.cams = list(rig.cameras)
         self.T_body_cam = [rig.cameras[c].T_imu_cam for c in self.cams]
         check_inside(self.trajectory, self.scene, self.T_body_cam, name=spec.name)

@@ -158,12 +158,14 @@ class Trajectory:
     euler: list[Sinusoids]
     pauses: Pauses | None = None
 
-    def _warp(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Path time ``s(t)`` and its first two derivatives (1 and 0 without pauses)."""
-        t = np.asarray(t, np.float64)
-        if self.pauses is None or not self.pauses.stops:
-            return t, np.ones_like(t), np.zeros_like(t)
-        return self.pauses(t), self.pauses(t, 1), self.pauses(t, 2)
+    @property
+    def paused(self) -> bool:
+        """Whether the motion stops anywhere (``pauses`` with at least one stop)."""
+        return self.pauses is not None and bool(self.pauses.stops)
+
+    def _path_time(self, t: np.ndarray) -> np.ndarray:
+        """The path's time ``s(t)`` at wall times ``t`` (``t`` itself without pauses)."""
+        return self.pauses(t) if self.paused else np.asarray(t, np.float64)
 
     def kinematics(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Fast single-time evaluation for the simulation loop.
@@ -182,7 +184,8 @@ class Trajectory:
                 amp[i, :len(f.amp)], om[i, :len(f.omega)], ph[i, :len(f.phase)] = f.amp, f.omega, f.phase
             pk = self._packed = (np.array([f.c0 for f in fs]), np.array([f.c1 for f in fs]), amp, om, ph)
         c0, c1, amp, om, ph = pk
-        s_t, ds, _ = (float(x) for x in self._warp(np.float64(t_s)))
+        # the simulation loop's hot path: no warp arrays without pauses
+        s_t, ds = (float(self.pauses(t_s)), float(self.pauses(t_s, 1))) if self.paused else (t_s, 1.0)
         arg = s_t * om + ph
         f0 = c0 + c1 * s_t + (amp * np.sin(arg)).sum(1)
         f1 = (c1 + (amp * om * np.cos(arg)).sum(1)) * ds
@@ -198,20 +201,22 @@ class Trajectory:
     def position(self, t: np.ndarray, order: int = 0) -> np.ndarray:
         """(N, 3) world position (order 0, m), velocity (1, m/s), acceleration (2, m/s²) or, without
         pauses, any higher derivative."""
-        if self.pauses is None or not self.pauses.stops:
+        if not self.paused:
             return np.stack([f(t, order) for f in self.pos], axis=-1)
-        s_t, ds, dds = self._warp(t)
+        s_t = self.pauses(t)
         if order == 0:
             return np.stack([f(s_t) for f in self.pos], axis=-1)
+        ds = self.pauses(t, 1)
         if order == 1:
             return np.stack([f(s_t, 1) * ds for f in self.pos], axis=-1)
         if order == 2:  # d²/dt² f(s(t)) = f''(s) s'^2 + f'(s) s''
+            dds = self.pauses(t, 2)
             return np.stack([f(s_t, 2) * ds * ds + f(s_t, 1) * dds for f in self.pos], axis=-1)
         raise ValueError(f"position derivative order must be 0, 1 or 2 on a trajectory with pauses, got {order}")
 
     def rotation(self, t: np.ndarray) -> np.ndarray:
         """(N, 3, 3) ``R_world_body``."""
-        s_t = self._warp(t)[0]
+        s_t = self._path_time(t)
         psi, th, ph = (f(s_t) for f in self.euler)
         cy, sy, cp, sp, cr, sr = np.cos(psi), np.sin(psi), np.cos(th), np.sin(th), np.cos(ph), np.sin(ph)
         R = np.empty(np.shape(psi) + (3, 3))
@@ -232,7 +237,7 @@ class Trajectory:
         For ``R = Rz(psi) Ry(theta) Rx(phi)``: ``omega_body = (phi' - psi' sin(theta),
         theta' cos(phi) + psi' sin(phi) cos(theta), -theta' sin(phi) + psi' cos(phi) cos(theta))``.
         """
-        s_t, ds, _ = self._warp(t)
+        s_t, ds = self._path_time(t), (self.pauses(t, 1) if self.paused else 1.0)
         psi, th, ph = (f(s_t) for f in self.euler)
         dpsi, dth, dph = (f(s_t, 1) * ds for f in self.euler)
         return np.stack([
@@ -253,7 +258,7 @@ class Trajectory:
     def pose7(self, t: np.ndarray) -> np.ndarray:
         """(N, 7) ``tx ty tz qx qy qz qw`` of ``T_world_body`` (the canonical GT format)."""
         t = np.atleast_1d(np.asarray(t, np.float64))
-        psi, th, ph = (f(self._warp(t)[0]) / 2 for f in self.euler)
+        psi, th, ph = (f(self._path_time(t)) / 2 for f in self.euler)
         cy, sy, cp, sp, cr, sr = np.cos(psi), np.sin(psi), np.cos(th), np.sin(th), np.cos(ph), np.sin(ph)
         q = np.stack([
             sr * cp * cy - cr * sp * sy,
