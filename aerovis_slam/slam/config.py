@@ -388,16 +388,16 @@ class TrackingConfig:
             rarely the one that is wrong (docs/slam.md, "Refit on disagreement").
         zero_velocity: a frame without new events (``input.min_new_events_per_px``) whose IMU samples
             fit a body at rest (:func:`~aerovis_slam.slam.imu.standstill_chi2` at most ``still_chi2``)
-            while the estimated speed is below ``still_max_speed_m_s`` is a standstill: it does not
-            count towards a tracking loss, and the IMU-only keyframes it adds hold the velocity at zero
-            (sigma ``still_velocity_sigma_m_s``). A camera put down on a quiet sensor sends no events,
-            and without this the map was dropped after ``loss_time_s`` (warning ``still``).
+            while the estimated speed is below ``still_max_speed_m_s`` is a standstill: one keyframe
+            holds the velocity at zero (sigma ``still_velocity_sigma_m_s``), then the pose is held and
+            no time at rest counts towards a tracking loss. A camera put down on a quiet sensor sends no
+            events, and without this the map was dropped after ``loss_time_s`` (warning ``still``).
         still_window_s: the IMU samples tested span this long before the frame (at least back to the
             previous frame): longer windows average more noise away (a DAVIS IMU's mean over 20 ms is
             0.3 m/s² and 1.3 deg/s uncertain per axis, over 0.1 s 0.14 m/s² and 0.6 deg/s).
         still_chi2: the test's threshold (chi-square, 6 degrees of freedom: 22.5 is its 99.9 % point).
         still_gyro_floor_rad_s, still_acc_floor_m_s2: the test's allowance for errors of the bias and
-            attitude estimates (1 sigma per axis; 0.1 m/s² is 0.6 deg of tilt), added to the white noise
+            attitude estimates (1 sigma per axis; 0.2 m/s² is 1.2 deg of tilt), added to the white noise
             of the window's mean.
         still_max_speed_m_s: the speed gate: a constant velocity in the dark fits the IMU test as well.
             Loose, since the estimate itself drifts while a halting camera sends too few events to

@@ -499,7 +499,7 @@ class StereoInertialOdometry:
             # The time surfaces are unchanged because nothing moved: the map stays valid. A keyframe
             # now holds the velocity at zero; until the body moves again its pose is held and no IMU
             # sample is integrated (integrated, the bias error would move a body at rest).
-            self.log.warn("still", f"t={tau} µs: {why}, and the IMU says the camera is at rest: pose held, velocity zero, map kept")
+            self._warn_still(tau, why)
             self.kf_id += 1
             state = self._smoother_keyframe(self.kf_id, tau, NavEstimate(state.T_world_body, np.zeros(3), state.bias),
                                             Observations.empty(), {}, update_landmarks=False, zero_velocity=True)
@@ -527,11 +527,14 @@ class StereoInertialOdometry:
         self._poll_loop_closer()
         return self._result(tau, False, False, 0, {"tracking": (time.perf_counter() - t0) * 1e3})
 
+    def _warn_still(self, tau: int, why: str) -> None:
+        self.log.warn("still", f"t={tau} µs: {why}, and the IMU says the camera is at rest: pose held, velocity zero, map kept")
+
     def _held_frame(self, tau: int, why: str, t0: float) -> FrameResult:
         """A frame at rest: the pose of the keyframe that came to rest, zero velocity. The IMU's
         preintegration skips the rest (it starts again from this frame's time), which the body's rest
         makes exact: the next keyframe's IMU factor sees the rest keyframe's state at its end."""
-        self.log.warn("still", f"t={tau} µs: {why}, and the IMU says the camera is at rest: pose held, velocity zero, map kept")
+        self._warn_still(tau, why)
         self.state = NavEstimate(self.kf_state.T_world_body.copy(), np.zeros(3), self.kf_state.bias)
         self.t_last = self.t_last_good = tau
         self._poll_loop_closer()
@@ -550,9 +553,7 @@ class StereoInertialOdometry:
             return None
         b = state.bias
         acc_at_rest = np.asarray(b.accelerometer()) + state.T_world_body[:3, :3].T @ np.array([0.0, 0.0, GRAVITY])
-        chi2, gyro_mean, acc_mean, window_s = standstill_chi2(
-            self.stream, min(t0, t1 - int(tc.still_window_s * 1e6)), t1, np.asarray(b.gyroscope()), acc_at_rest, self.noise,
-            gyro_floor_rad_s=tc.still_gyro_floor_rad_s, acc_floor_m_s2=tc.still_acc_floor_m_s2)
+        chi2, gyro_mean, acc_mean, window_s = self._rest_chi2(t0, t1, np.asarray(b.gyroscope()), acc_at_rest)
         return (gyro_mean, acc_mean, window_s) if chi2 <= tc.still_chi2 else None
 
     def _stays_at_rest(self, t0: int, t1: int) -> bool:
@@ -560,12 +561,17 @@ class StereoInertialOdometry:
         ``still_window_s``) against the mean readings of the window in which it came to rest. Unlike
         that first test this needs no estimate, so an update of the bias at the rest keyframe cannot
         end the rest."""
-        tc = self.cfg.tracking
         gyro_ref, acc_ref, ref_s = self.rest
-        chi2 = standstill_chi2(self.stream, min(t0, t1 - int(tc.still_window_s * 1e6)), t1, gyro_ref, acc_ref, self.noise,
-                               gyro_floor_rad_s=tc.still_gyro_floor_rad_s, acc_floor_m_s2=tc.still_acc_floor_m_s2,
-                               reference_window_s=ref_s)[0]
-        return chi2 <= tc.still_chi2
+        return self._rest_chi2(t0, t1, gyro_ref, acc_ref, reference_window_s=ref_s)[0] <= self.cfg.tracking.still_chi2
+
+    def _rest_chi2(self, t0: int, t1: int, gyro_at_rest: np.ndarray, acc_at_rest: np.ndarray,
+                   reference_window_s: float | None = None) -> tuple[float, np.ndarray, np.ndarray, float]:
+        """:func:`~aerovis_slam.slam.imu.standstill_chi2` over ``[t0, t1]`` µs widened to at least the last
+        ``tracking.still_window_s``, with the configured floors."""
+        tc = self.cfg.tracking
+        return standstill_chi2(self.stream, min(t0, t1 - int(tc.still_window_s * 1e6)), t1, gyro_at_rest, acc_at_rest,
+                               self.noise, gyro_floor_rad_s=tc.still_gyro_floor_rad_s, acc_floor_m_s2=tc.still_acc_floor_m_s2,
+                               reference_window_s=reference_window_s)
 
     def _visual_failure(self, tau: int, count_frame: bool = True) -> bool:
         """Count a frame without visual tracking; declare a tracking loss when they pile up (True).
