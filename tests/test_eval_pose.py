@@ -744,10 +744,24 @@ def test_cli_pose_oracle_rows_leave_the_method_unchanged(dot_sequence, tmp_path,
 
 def test_match_truth_counts_matches_within_each_radius_of_the_truth():
     """Four matches: one 0.5 px from the truth, one 2.5 px (correct within 3 px, not 1 px), one 5 px,
-    one whose first keypoint is not in view (NaN truth)."""
+    one whose first keypoint is not in view (NaN truth).
+
+    Repeatability ignores the matches: keypoint 0's truth (10, 10) has (10.5, 10) at 0.5 px, keypoint 1's
+    (20, 20) has (20, 22.5) at 2.5 px, keypoint 2's (30, 30) has nothing nearer than (30, 35) at 5 px;
+    keypoint 3 is not in view. So 3 in view, 1 repeatable within 1 px, 2 within 3 px."""
     uv_true = np.array([[10.0, 10.0], [20.0, 20.0], [30.0, 30.0], [np.nan, np.nan]])
     xy1 = np.array([[30.0, 35.0], [10.5, 10.0], [20.0, 22.5], [0.0, 0.0]])
     m = np.array([[0, 1], [1, 2], [2, 0], [3, 3]])
-    assert match_truth(xy1, m, uv_true) == {"in_view": 3, "correct": {"1": 1, "3": 2}, "error_px": pytest.approx(1.5)}
-    assert match_truth(xy1, m, uv_true, (1.0,)) == {"in_view": 3, "correct": {"1": 1}, "error_px": pytest.approx(0.5)}
-    assert match_truth(xy1, m[3:], uv_true) == {"in_view": 0, "correct": {"1": 0, "3": 0}, "error_px": None}
+    seen = {"keypoints_in_view": 3}
+    assert match_truth(xy1, m, uv_true) == {"in_view": 3, "correct": {"1": 1, "3": 2}, "error_px": pytest.approx(1.5),
+                                            **seen, "repeatable": {"1": 1, "3": 2}}
+    assert match_truth(xy1, m, uv_true, (1.0,)) == {"in_view": 3, "correct": {"1": 1}, "error_px": pytest.approx(0.5),
+                                                    **seen, "repeatable": {"1": 1}}
+    # repeatability does not depend on the matches: with only the unseen keypoint matched it stays
+    assert match_truth(xy1, m[3:], uv_true) == {"in_view": 0, "correct": {"1": 0, "3": 0}, "error_px": None,
+                                                **seen, "repeatable": {"1": 1, "3": 2}}
+    # keypoint 1 matched to the wrong keypoint: correct drops, repeatable stays
+    wrong = np.array([[1, 0]])
+    assert match_truth(xy1, wrong, uv_true)["correct"] == {"1": 0, "3": 0}
+    assert match_truth(xy1, wrong, uv_true)["repeatable"] == {"1": 1, "3": 2}
+    assert match_truth(np.zeros((0, 2)), np.zeros((0, 2), int), uv_true)["repeatable"] == {"1": 0, "3": 0}

@@ -52,7 +52,8 @@ DEFAULT_MODELS = ("superlite", "superevent_plus", "superevent")
 DEFAULT_DETECTORS = ("orb", "sift", "gftt_brief")
 JSON_KEYS = ("method", "auc5", "auc10", "auc20", "matches", "inlier_ratio", "latency_ms")
 #: what ``--oracle-noise-px`` adds to a row (summaries of :func:`~aerovis_train.eval.pose.summarize`)
-TRUTH_KEYS = ("correct_matches_1px", "correct_matches_3px", "correct_error_px", "oracle")
+TRUTH_KEYS = ("correct_matches_1px", "correct_matches_3px", "correct_error_px", "keypoints_in_view", "repeatable_1px",
+              "repeatable_3px", "oracle")
 
 
 @dataclass
@@ -301,12 +302,13 @@ def oracle_table(rows: list[dict]) -> str:
         return ""
     levels = " / ".join(f"{o['noise_px']:g}" for o in rows[0]["oracle"])
     lines = [f"| method | AUC@10 | matches/pair | correct within 1 / 3 px | their error (px) | keypoints in view | "
-             f"perfect matches, all in view, AUC@10 at {levels} px | as many as own inliers, same levels |",
-             "|---|---:|---:|---|---:|---:|---|---|"]
+             f"repeatable within 1 / 3 px | perfect matches, all in view, AUC@10 at {levels} px | as many as own inliers, same levels |",
+             "|---|---:|---:|---|---:|---:|---|---|---|"]
     for r in rows:
         o = r["oracle"]
         lines.append(f"| {r['method']} | {_f(r['auc10'])} | {_f(r['matches'])} | {_f(r['correct_matches_1px'])} / "
                      f"{_f(r['correct_matches_3px'])} | {_f(r['correct_error_px'], 2)} | {_f(o[0]['matches'], 0)} | "
+                     f"{_f(r.get('repeatable_1px'))} / {_f(r.get('repeatable_3px'))} | "
                      + " / ".join(_f(x["auc10"]) for x in o) + " | " + " / ".join(_f(x["auc10_at_inliers"]) for x in o) + " |")
     return "\n".join(lines) + "\n"
 

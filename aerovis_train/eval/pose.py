@@ -374,6 +374,10 @@ def summarize(per_pair: list[dict], thresholds: tuple[float, ...] = AUC_THRESHOL
     if per_pair and "truth" in per_pair[0]:
         for r in per_pair[0]["truth"]["correct"]:
             out[f"correct_matches_{r}px"] = float(np.mean([p["truth"]["correct"][r] for p in per_pair]))
+        if "repeatable" in per_pair[0]["truth"]:
+            out["keypoints_in_view"] = float(np.mean([p["truth"]["keypoints_in_view"] for p in per_pair]))
+            for r in per_pair[0]["truth"]["repeatable"]:
+                out[f"repeatable_{r}px"] = float(np.mean([p["truth"]["repeatable"][r] for p in per_pair]))
         errors = [p["truth"]["error_px"] for p in per_pair if p["truth"]["error_px"] is not None]
         out["correct_error_px"] = float(np.median(errors)) if errors else None  # median over pairs of each pair's median
     if per_pair and "oracle" in per_pair[0]:
@@ -445,16 +449,26 @@ def match_truth(xy1: np.ndarray, matches: np.ndarray, uv_true: np.ndarray, radii
         radii_px: the distances (px).
     Returns:
         ``in_view`` (matches whose first keypoint is in view in the second frame), ``correct`` (count
-        per radius, keyed by the radius as text, e.g. ``"3"``) and ``error_px`` (median distance to
-        the truth of the matches correct within the largest radius; None without any).
+        per radius, keyed by the radius as text, e.g. ``"3"``), ``error_px`` (median distance to
+        the truth of the matches correct within the largest radius; None without any),
+        ``keypoints_in_view`` (first-frame keypoints in view in the second frame) and ``repeatable``
+        (per radius: those of them with a second-frame keypoint within ``r`` px of their true
+        projection, the detector's repeatability count; what a perfect descriptor could match at most).
     """
+    xy1 = np.asarray(xy1, np.float64).reshape(-1, 2)
     matches = np.asarray(matches, np.int64).reshape(-1, 2)
-    d = np.linalg.norm(np.asarray(xy1, np.float64)[matches[:, 1]] - uv_true[matches[:, 0]], axis=1)
+    d = np.linalg.norm(xy1[matches[:, 1]] - uv_true[matches[:, 0]], axis=1)
     in_view = np.isfinite(d)
     d = np.where(in_view, d, np.inf)
     within = d <= max(radii_px)
+    seen = np.isfinite(uv_true).all(axis=1)
+    nearest = np.full(len(uv_true), np.inf)
+    if seen.any() and len(xy1):
+        # a few hundred keypoints a frame: the full distance matrix is cheaper than building a tree
+        nearest[seen] = np.linalg.norm(uv_true[seen][:, None] - xy1[None], axis=2).min(axis=1)
     return {"in_view": int(in_view.sum()), "correct": {f"{r:g}": int(np.sum(d <= r)) for r in radii_px},
-            "error_px": float(np.median(d[within])) if within.any() else None}
+            "error_px": float(np.median(d[within])) if within.any() else None,
+            "keypoints_in_view": int(seen.sum()), "repeatable": {f"{r:g}": int(np.sum(nearest <= r)) for r in radii_px}}
 
 
 def oracle_pair_errors(a: np.ndarray, b: np.ndarray, K: np.ndarray, T_1_0_gt: np.ndarray, ransac_px: float, noise_px,
