@@ -134,6 +134,19 @@ def grid_targets_depth(view0: ViewGeometry, view1: ViewGeometry, cell: int = 8):
     return xy1.astype(np.float32), vis
 
 
+def pixel_targets_depth(view0: ViewGeometry, view1: ViewGeometry) -> np.ndarray:
+    """Dense targets for the detector's repeatability loss: where every pixel of view 0 lands in view 1.
+
+    Returns:
+        (H0, W0, 2) float32 pixel positions (x, y) in view 1 of the pixel centres (integer coordinates,
+        the convention of :func:`cell_centres`) of view 0; NaN where invisible.
+    """
+    w, h = view0.size
+    ys, xs = np.meshgrid(np.arange(h, dtype=np.float64), np.arange(w, dtype=np.float64), indexing="ij")
+    xy1, _ = warp_with_depth(np.stack([xs.ravel(), ys.ravel()], axis=1), view0, view1)
+    return xy1.reshape(h, w, 2).astype(np.float32)
+
+
 def epipolar_lines(view0: ViewGeometry, view1: ViewGeometry, cell: int = 8) -> np.ndarray:
     """Epipolar lines in view 1 of the cell centres of view 0: (Hc0*Wc0, 3) (a, b, c), a^2 + b^2 = 1,
     so the distance of pixel (x, y) to a line is |a x + b y + c| (used by the pose-only loss)."""

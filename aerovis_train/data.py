@@ -32,7 +32,7 @@ from aerovis_slam.errors import DataError
 from aerovis_slam.io.sequence import Sequence
 from aerovis_slam.mcts import MCTS_DT_WINDOWS_MS, events_per_window, mcts_from_events
 
-from .correspondences import ViewGeometry, epipolar_lines, grid_targets_depth
+from .correspondences import ViewGeometry, epipolar_lines, grid_targets_depth, pixel_targets_depth
 from .labels import CornerLabeller, Labeller, cell_labels, cross_view_consistent, soft_cell_labels
 
 
@@ -125,6 +125,9 @@ class EventPairDataset(Dataset):
         soft_labels: detector targets as 65-class distributions that keep the labels' sub-pixel
             positions (:func:`~aerovis_train.labels.soft_cell_labels`, float (65, Hc, Wc)) instead of
             the class of each label's nearest pixel (int64 (Hc, Wc)); for a sub-pixel labeller.
+        pixel_warps: also return ``flow01``/``flow10``, (H, W, 2) float32: where every pixel of one
+            view lands in the other (NaN: invisible; :func:`~aerovis_train.correspondences.pixel_targets_depth`),
+            for the detector's repeatability loss. Depth supervision only.
     """
 
     def __init__(
@@ -143,9 +146,14 @@ class EventPairDataset(Dataset):
         event_cache: str | os.PathLike | None = None,
         roll_deg: float = 0.0,
         soft_labels: bool = False,
+        pixel_warps: bool = False,
     ):
         if supervision not in ("depth", "epipolar"):
             raise ValueError(f"supervision must be 'depth' or 'epipolar', not {supervision!r}")
+        if pixel_warps and supervision != "depth":
+            raise ValueError("pixel warps (the repeatability loss) need depth supervision: poses alone do not say "
+                             "where a pixel lands in the other view")
+        self.pixel_warps = bool(pixel_warps)
         if not paths:
             raise DataError(None, "no training sequences given")
         self.mcts, self.crop, self.max_gap = mcts, crop, max_gap_frames
@@ -249,6 +257,9 @@ class EventPairDataset(Dataset):
         if self.supervision == "depth":
             sample["warp01"] = torch.from_numpy(grid_targets_depth(g0c, g1c)[0])
             sample["warp10"] = torch.from_numpy(grid_targets_depth(g1c, g0c)[0])
+            if self.pixel_warps:
+                sample["flow01"] = torch.from_numpy(pixel_targets_depth(g0c, g1c))
+                sample["flow10"] = torch.from_numpy(pixel_targets_depth(g1c, g0c))
         else:
             sample["lines01"] = torch.from_numpy(epipolar_lines(g0c, g1c))
             sample["lines10"] = torch.from_numpy(epipolar_lines(g1c, g0c))

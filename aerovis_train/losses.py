@@ -14,7 +14,12 @@
   * dual softmax. The softmax ranks the true match first; the hinge keeps similarities calibrated
   (true matches near 1, others below 0.2), which a fixed similarity threshold, as in the SLAM
   runtime's tracking, relies on.
-* Total = det0 + det1 + ``desc_weight`` (10) * desc.
+* Optionally (``loss.repeatability`` > 0, depth only): R2D2's repeatability loss on the keypoint
+  probability maps. Each view's map, warped into the other by depth and pose, must have the same
+  local shape: 1 - the cosine similarity of the two maps over overlapping patches. The corner labels
+  teach where corners of the intensity frame are; this term teaches the network to fire at the same
+  scene points in both views wherever it fires, which is what the evaluation's top-k keypoints need.
+* Total = det0 + det1 + ``desc_weight`` (10) * desc (+ ``repeatability`` * rep).
 
 Targets come from :mod:`aerovis_train.correspondences`: with depth, cell centres warped into the
 other view; with poses alone, epipolar lines (multiple-instance positive: the most similar cell near
@@ -180,3 +185,41 @@ def descriptor_loss_dual_softmax(
     row = -torch.log_softmax(sim, dim=2)[is_target]  # each matched view-0 cell among the view-1 cells
     col = -torch.log_softmax(sim, dim=1)[is_target]  # its match among the view-0 cells
     return 0.5 * (row.mean() + col.mean())
+
+
+def repeatability_loss(scores0: torch.Tensor, scores1: torch.Tensor, flow01: torch.Tensor, *, patch: int = 8,
+                       min_visible: float = 0.5) -> torch.Tensor:
+    """R2D2's repeatability loss (Revaud et al. 2019), written here (kornia has no loss of this kind).
+
+    ``scores1`` is sampled bilinearly where each pixel of view 0 lands (``flow01``), so both maps are in
+    view 0's pixels. Over patches of ``patch`` x ``patch`` pixels, overlapping by half, the loss is one minus
+    the cosine similarity of ``scores0`` and the warped ``scores1``: it is 0 when the two maps have the same
+    local shape (peaks at the same scene points, whatever their height) and does not care about the
+    maps' overall level, which the 65-class cross-entropy sets.
+
+    Args:
+        scores0, scores1: (B, H, W) keypoint probability maps of the two views.
+        flow01: (B, H, W, 2) float: where each pixel (x, y) of view 0 lands in view 1, in view-1 pixels
+            (NaN: invisible).
+        patch: patch side in pixels (8: one cell).
+        min_visible: patches with a smaller share of visible pixels are left out.
+    Returns:
+        Scalar mean of ``1 - cos`` over the kept patches; 0 when none is kept.
+    """
+    B, H, W = scores0.shape
+    h1, w1 = scores1.shape[-2:]
+    visible = torch.isfinite(flow01).all(-1)
+    flow = torch.nan_to_num(flow01, nan=-1e4)
+    # pixel centres at integer coordinates: align_corners=True maps 0 and w1 - 1 to -1 and +1
+    grid = torch.stack([2.0 * flow[..., 0] / max(w1 - 1, 1) - 1.0, 2.0 * flow[..., 1] / max(h1 - 1, 1) - 1.0], dim=-1)
+    warped = F.grid_sample(scores1.unsqueeze(1), grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+    m = visible.unsqueeze(1).to(scores0.dtype)
+    a, b = scores0.unsqueeze(1) * m, warped * m
+    stride = max(1, patch // 2)
+    pool = lambda x: F.avg_pool2d(x, patch, stride)  # noqa: E731
+    ab, aa, bb = pool(a * b), pool(a * a), pool(b * b)
+    cos = ab / torch.sqrt(aa * bb).clamp_min(1e-12)
+    keep = pool(m) >= min_visible
+    if not bool(keep.any()):
+        return scores0.new_zeros(())
+    return (1.0 - cos)[keep].mean()

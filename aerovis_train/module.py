@@ -7,7 +7,8 @@ from lightning.pytorch.utilities import rank_zero_warn
 import torch
 
 from .eval.learned import TorchDetector
-from .losses import descriptor_loss_depth, descriptor_loss_dual_softmax, descriptor_loss_epipolar, descriptor_loss_terms, detector_loss
+from .losses import (descriptor_loss_depth, descriptor_loss_dual_softmax, descriptor_loss_epipolar, descriptor_loss_terms, detector_loss,
+                     repeatability_loss)
 from .models import build_model
 
 
@@ -59,7 +60,17 @@ class KeypointModule(L.LightningModule):
             desc = desc + weights[term] * 0.5 * (loss_fn(desc0, desc1, targets[0], **kw) + loss_fn(desc1, desc0, targets[1], **kw))
         det0, det1 = detector_loss(logits0, batch["labels0"]), detector_loss(logits1, batch["labels1"])
         total = det0 + det1 + lc["desc_weight"] * desc
-        return {"loss": total, "det0": det0, "det1": det1, "desc": desc}
+        losses = {"det0": det0, "det1": det1, "desc": desc}
+        rep_weight = float(lc.get("repeatability", 0.0) or 0.0)
+        if rep_weight > 0:
+            if "flow01" not in batch:
+                raise ValueError("loss.repeatability > 0 needs the pixel warps of depth supervision (data.supervision=depth)")
+            s0, s1 = out["scores"][:b], out["scores"][b:]
+            patch = int(lc.get("repeatability_patch", 8))
+            rep = 0.5 * (repeatability_loss(s0, s1, batch["flow01"], patch=patch) + repeatability_loss(s1, s0, batch["flow10"], patch=patch))
+            total = total + rep_weight * rep
+            losses["rep"] = rep
+        return {"loss": total, **losses}
 
     def training_step(self, batch, batch_idx):
         for key in ("mcts0", "mcts1"):

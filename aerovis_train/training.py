@@ -168,7 +168,8 @@ def make_dataset(cfg: DictConfig, paths: list[Path], size_multiple: int, samples
         stereo_fraction=float(cfg.data.stereo_fraction), supervision=str(cfg.data.supervision),
         samples_per_epoch=samples_per_epoch or int(cfg.data.samples_per_epoch), seed=int(cfg.seed),
         event_cache=event_cache_dir(cfg), roll_deg=float(cfg.data.get("roll_deg", 0.0)),
-        labeller=labeller, soft_labels=labeller.subpixel_window > 0)
+        labeller=labeller, soft_labels=labeller.subpixel_window > 0,
+        pixel_warps=float(cfg.loss.get("repeatability", 0.0) or 0.0) > 0)
 
 
 def gpu_processes(trainer_cfg) -> int:
@@ -299,6 +300,9 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
         descriptor_loss_terms(str(cfg.loss.get("descriptor", "hinge")), str(cfg.data.get("supervision", "depth")))
     except ValueError as exc:  # refused before any data is generated
         raise DataError(None, str(exc)) from None
+    if float(cfg.loss.get("repeatability", 0.0) or 0.0) > 0 and str(cfg.data.get("supervision", "depth")) != "depth":
+        raise DataError(None, f"loss.repeatability={cfg.loss.repeatability} needs data.supervision=depth (pixel warps need "
+                              f"depth; this run has {cfg.data.supervision!r}); use loss.repeatability=0")
     L.seed_everything(int(cfg.seed), workers=True)
     torch.set_num_threads(int(cfg.get("torch_threads") or torch.get_num_threads()))
     run_dir = Path(cfg.run_dir)

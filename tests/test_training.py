@@ -21,9 +21,11 @@ from aerovis_train.correspondences import (  # noqa: E402
     grid_targets_depth,
     keypoint_matches_depth,
     keypoint_matches_epipolar,
+    pixel_targets_depth,
 )
 from aerovis_train.labels import CornerLabeller, cell_labels, cross_view_consistent, soft_cell_labels  # noqa: E402
-from aerovis_train.losses import descriptor_loss_depth, descriptor_loss_dual_softmax, descriptor_loss_epipolar, detector_loss  # noqa: E402
+from aerovis_train.losses import (descriptor_loss_depth, descriptor_loss_dual_softmax, descriptor_loss_epipolar, detector_loss,  # noqa: E402
+                                  repeatability_loss)
 
 from conftest import REPO_ROOT, randomise_batchnorm  # noqa: E402
 
@@ -193,6 +195,45 @@ def test_dual_softmax_descriptor_loss_known_values():
     assert got == pytest.approx(0.5 * (np.log(row).mean() + np.log(col).mean()), rel=1e-5)
     # no visible cell: no matches, no loss
     assert float(descriptor_loss_dual_softmax(codes, desc1, torch.full_like(warped, float("nan")))) == 0.0
+
+
+def test_pixel_targets_land_where_the_wall_moves():
+    """Every pixel of a wall 2 m away, seen from 0.1 m to the right, lands f * b / z = 5 px to the left;
+    the columns that leave view 1 (x - 5 < -0.5) are NaN."""
+    v0, v1 = wall_views(tx=0.1, depth=2.0)
+    flow = pixel_targets_depth(v0, v1)
+    assert flow.shape == (H, W, 2) and flow.dtype == np.float32
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
+    inside = xs - 5 > -0.5
+    np.testing.assert_allclose(flow[inside][:, 0], xs[inside] - 5, atol=1e-4)
+    np.testing.assert_allclose(flow[inside][:, 1], ys[inside], atol=1e-4)
+    assert np.isnan(flow[~inside]).all()
+
+
+def test_repeatability_loss_known_values():
+    """1 - cosine similarity of patches of the two maps after the warp: 0 for maps that move with the
+    scene, 1 - 1/sqrt(2) for a patch whose second map covers half of the first, 0 with nothing visible."""
+    rng = np.random.default_rng(0)
+    s0 = torch.from_numpy(rng.random((1, H, W))).float()
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
+    identity = torch.stack([xs, ys], -1)[None]
+    assert float(repeatability_loss(s0, s0, identity)) == pytest.approx(0.0, abs=1e-6)
+    # the second view sees the scene 5 px to the left (the wall above): its map is the first one shifted, and
+    # bilinear sampling at whole pixels reads it back exactly
+    s1 = torch.zeros_like(s0)
+    s1[..., : W - 5] = s0[..., 5:]
+    flow = identity - torch.tensor([5.0, 0.0])
+    flow[:, :, :5] = float("nan")  # these pixels leave view 1
+    assert float(repeatability_loss(s0, s1, flow)) == pytest.approx(0.0, abs=1e-6)
+    # the same maps without the shift in the warp are far from alike
+    assert float(repeatability_loss(s0, s1, identity)) > 0.1
+    # one 8x8 patch: the first map 1 everywhere, the second 1 on its left half: cos = 32 / sqrt(64 * 32)
+    a, b = torch.ones(1, 8, 8), torch.zeros(1, 8, 8)
+    b[..., :4] = 1.0
+    ident8 = identity[:, :8, :8]
+    assert float(repeatability_loss(a, b, ident8)) == pytest.approx(1 - 1 / np.sqrt(2), rel=1e-6)
+    # nothing visible: no patch, no loss (and no NaN)
+    assert float(repeatability_loss(a, b, torch.full_like(ident8, float("nan")))) == 0.0
 
 
 def _train(tmp_path, *overrides, cache=None):
@@ -417,6 +458,20 @@ def test_dual_softmax_descriptor_loss_trains(tmp_path, sim_cache):
     assert bad.returncode == 2 and "loss.descriptor='triplet': expected one of hinge, dual_softmax" in bad.stderr
     bad = _train(tmp_path / "bad2", "loss.descriptor=dual_softmax", "data.supervision=epipolar", cache=sim_cache)
     assert bad.returncode == 2 and "needs data.supervision=depth" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_repeatability_loss_trains(tmp_path, sim_cache):
+    """loss.repeatability=1: a short run logs the repeatability term, which lies in [0, 1] (1 - the cosine
+    similarity of non-negative maps); on pose-only supervision it is refused before training."""
+    run = tmp_path / "run"
+    res = _train(run, "loss.repeatability=1.0", "data.crop=[40,56]", "trainer.max_steps=2", "trainer.log_every_n_steps=1",
+                 cache=sim_cache)
+    assert res.returncode == 0, res.stderr[-3000:]
+    logged = list(csv.DictReader((next(run.rglob("metrics.csv"))).open()))
+    rep = [float(r["train/rep"]) for r in logged if r.get("train/rep")]
+    assert rep and all(0.0 < x <= 1.0 for x in rep)
+    bad = _train(tmp_path / "bad", "loss.repeatability=1.0", "data.supervision=epipolar", cache=sim_cache)
+    assert bad.returncode == 2 and "loss.repeatability=1.0 needs data.supervision=depth" in bad.stderr and "Traceback" not in bad.stderr
 
 
 def test_fine_tuning_starts_from_the_given_weights(tmp_path, sim_cache):
