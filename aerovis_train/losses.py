@@ -218,7 +218,8 @@ def repeatability_loss(scores0: torch.Tensor, scores1: torch.Tensor, flow01: tor
     stride = max(1, patch // 2)
     pool = lambda x: F.avg_pool2d(x, patch, stride)  # noqa: E731
     ab, aa, bb = pool(a * b), pool(a * a), pool(b * b)
-    cos = ab / torch.sqrt(aa * bb).clamp_min(1e-12)
+    # clamped inside the root: sqrt's gradient at 0 is infinite, and 0 * inf poisons even left-out patches
+    cos = ab / torch.sqrt((aa * bb).clamp_min(1e-24))
     keep = pool(m) >= min_visible
     if not bool(keep.any()):
         return scores0.new_zeros(())

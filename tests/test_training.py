@@ -234,6 +234,12 @@ def test_repeatability_loss_known_values():
     assert float(repeatability_loss(a, b, ident8)) == pytest.approx(1 - 1 / np.sqrt(2), rel=1e-6)
     # nothing visible: no patch, no loss (and no NaN)
     assert float(repeatability_loss(a, b, torch.full_like(ident8, float("nan")))) == 0.0
+    # finite gradients where patches are empty or left out (sqrt at 0 once gave NaN there and killed a run)
+    s0g, s1g = s0.clone().requires_grad_(), s1.clone().requires_grad_()
+    half = flow.clone()
+    half[:, :, W // 2:] = float("nan")
+    repeatability_loss(s0g, torch.zeros_like(s1g) + 0 * s1g, half).backward()
+    assert torch.isfinite(s0g.grad).all() and torch.isfinite(s1g.grad).all()
 
 
 def _train(tmp_path, *overrides, cache=None):
