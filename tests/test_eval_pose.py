@@ -732,8 +732,12 @@ def test_cli_pose_oracle_rows_leave_the_method_unchanged(dot_sequence, tmp_path,
     assert {k: line[k] for k in ("auc5", "auc10", "auc20", "pairs", "matches")} == {k: plain[k] for k in ("auc5", "auc10", "auc20", "pairs", "matches")}
     assert [r["noise_px"] for r in line["oracle"]] == [0.0, 1.0]
     assert 0 < line["correct_matches_1px"] <= line["correct_matches_3px"] <= line["matches"] and 0.0 <= line["correct_error_px"] <= 3.0
+    # a match correct within r makes its first keypoint repeatable within r, and mutual matches use each keypoint once:
+    # correct <= repeatable at each radius; the oracle matches exactly the keypoints in view
+    assert line["correct_matches_1px"] <= line["repeatable_1px"] <= line["repeatable_3px"] <= line["keypoints_in_view"]
+    assert line["correct_matches_3px"] <= line["repeatable_3px"]
     for r in line["oracle"]:
-        assert r["matches"] > 0
+        assert r["matches"] > 0 and r["matches"] == pytest.approx(line["keypoints_in_view"])
         assert all(0.0 <= r[f"auc{t}{s}"] <= 100.0 for t in (5, 10, 20) for s in ("", "_max", "_at_inliers"))
     assert cli.main(["pose", "--data", dot_sequence, "--detector", "orb", "--oracle-noise-px", "1", "--quiet"] + SMALL_ARGS) == 2
     err = capsys.readouterr().err
