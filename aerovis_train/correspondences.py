@@ -142,9 +142,8 @@ def pixel_targets_depth(view0: ViewGeometry, view1: ViewGeometry) -> np.ndarray:
         the convention of :func:`cell_centres`) of view 0; NaN where invisible.
     """
     w, h = view0.size
-    ys, xs = np.meshgrid(np.arange(h, dtype=np.float64), np.arange(w, dtype=np.float64), indexing="ij")
-    xy1, _ = warp_with_depth(np.stack([xs.ravel(), ys.ravel()], axis=1), view0, view1)
-    return xy1.reshape(h, w, 2).astype(np.float32)
+    # the cell grid at a cell of one pixel is the pixel grid, row-major
+    return grid_targets_depth(view0, view1, cell=1)[0].reshape(h, w, 2)
 
 
 def epipolar_lines(view0: ViewGeometry, view1: ViewGeometry, cell: int = 8) -> np.ndarray:

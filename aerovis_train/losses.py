@@ -187,6 +187,11 @@ def descriptor_loss_dual_softmax(
     return 0.5 * (row.mean() + col.mean())
 
 
+def repeatability_weight(loss_cfg) -> float:
+    """``loss.repeatability`` as a number (0 when unset: the loss is off)."""
+    return float(loss_cfg.get("repeatability", 0.0) or 0.0)
+
+
 def repeatability_loss(scores0: torch.Tensor, scores1: torch.Tensor, flow01: torch.Tensor, *, patch: int = 8,
                        min_visible: float = 0.5) -> torch.Tensor:
     """R2D2's repeatability loss (Revaud et al. 2019), written here (kornia has no loss of this kind).
@@ -206,7 +211,6 @@ def repeatability_loss(scores0: torch.Tensor, scores1: torch.Tensor, flow01: tor
     Returns:
         Scalar mean of ``1 - cos`` over the kept patches; 0 when none is kept.
     """
-    B, H, W = scores0.shape
     h1, w1 = scores1.shape[-2:]
     visible = torch.isfinite(flow01).all(-1)
     flow = torch.nan_to_num(flow01, nan=-1e4)

@@ -8,7 +8,7 @@ import torch
 
 from .eval.learned import TorchDetector
 from .losses import (descriptor_loss_depth, descriptor_loss_dual_softmax, descriptor_loss_epipolar, descriptor_loss_terms, detector_loss,
-                     repeatability_loss)
+                     repeatability_loss, repeatability_weight)
 from .models import build_model
 
 
@@ -61,7 +61,7 @@ class KeypointModule(L.LightningModule):
         det0, det1 = detector_loss(logits0, batch["labels0"]), detector_loss(logits1, batch["labels1"])
         total = det0 + det1 + lc["desc_weight"] * desc
         losses = {"det0": det0, "det1": det1, "desc": desc}
-        rep_weight = float(lc.get("repeatability", 0.0) or 0.0)
+        rep_weight = repeatability_weight(lc)
         if rep_weight > 0:
             if "flow01" not in batch:
                 raise ValueError("loss.repeatability > 0 needs the pixel warps of depth supervision (data.supervision=depth)")

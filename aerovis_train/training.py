@@ -33,7 +33,7 @@ from .checkpoints import AtomicCheckpointIO, lightning_model_state, save_slim
 from .data import EventPairDataset, make_loader, mcts_spec_from_config
 from .labels import CornerLabeller
 from .models import count_parameters
-from .losses import descriptor_loss_terms
+from .losses import descriptor_loss_terms, repeatability_weight
 from .module import KeypointModule
 
 #: what ``model.pt`` (and ``metrics.json``) hold: the highest validation AUC@10, or the final step
@@ -169,7 +169,7 @@ def make_dataset(cfg: DictConfig, paths: list[Path], size_multiple: int, samples
         samples_per_epoch=samples_per_epoch or int(cfg.data.samples_per_epoch), seed=int(cfg.seed),
         event_cache=event_cache_dir(cfg), roll_deg=float(cfg.data.get("roll_deg", 0.0)),
         labeller=labeller, soft_labels=labeller.subpixel_window > 0,
-        pixel_warps=float(cfg.loss.get("repeatability", 0.0) or 0.0) > 0)
+        pixel_warps=repeatability_weight(cfg.loss) > 0)
 
 
 def gpu_processes(trainer_cfg) -> int:
@@ -300,7 +300,7 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
         descriptor_loss_terms(str(cfg.loss.get("descriptor", "hinge")), str(cfg.data.get("supervision", "depth")))
     except ValueError as exc:  # refused before any data is generated
         raise DataError(None, str(exc)) from None
-    if float(cfg.loss.get("repeatability", 0.0) or 0.0) > 0 and str(cfg.data.get("supervision", "depth")) != "depth":
+    if repeatability_weight(cfg.loss) > 0 and str(cfg.data.get("supervision", "depth")) != "depth":
         raise DataError(None, f"loss.repeatability={cfg.loss.repeatability} needs data.supervision=depth (pixel warps need "
                               f"depth; this run has {cfg.data.supervision!r}); use loss.repeatability=0")
     L.seed_everything(int(cfg.seed), workers=True)

@@ -197,7 +197,6 @@ def main(argv: list[str] | None = None) -> int:
                         print(f"  its matches within 1 / 3 px of the truth: {summary['correct_matches_1px']:.1f} / "
                               f"{summary['correct_matches_3px']:.1f} per pair (median error of those within 3 px "
                               f"{summary['correct_error_px'] or float('nan'):.2f} px)", file=sys.stderr)
-                    if "repeatable_3px" in summary:
                         print(f"  its keypoints in view: {summary['keypoints_in_view']:.1f} per pair, repeatable within 1 / 3 px "
                               f"{summary['repeatable_1px']:.1f} / {summary['repeatable_3px']:.1f} (a second-frame keypoint "
                               "that close to the true projection: the most a perfect descriptor could match)", file=sys.stderr)

@@ -374,10 +374,9 @@ def summarize(per_pair: list[dict], thresholds: tuple[float, ...] = AUC_THRESHOL
     if per_pair and "truth" in per_pair[0]:
         for r in per_pair[0]["truth"]["correct"]:
             out[f"correct_matches_{r}px"] = float(np.mean([p["truth"]["correct"][r] for p in per_pair]))
-        if "repeatable" in per_pair[0]["truth"]:
-            out["keypoints_in_view"] = float(np.mean([p["truth"]["keypoints_in_view"] for p in per_pair]))
-            for r in per_pair[0]["truth"]["repeatable"]:
-                out[f"repeatable_{r}px"] = float(np.mean([p["truth"]["repeatable"][r] for p in per_pair]))
+        out["keypoints_in_view"] = float(np.mean([p["truth"]["keypoints_in_view"] for p in per_pair]))
+        for r in per_pair[0]["truth"]["repeatable"]:
+            out[f"repeatable_{r}px"] = float(np.mean([p["truth"]["repeatable"][r] for p in per_pair]))
         errors = [p["truth"]["error_px"] for p in per_pair if p["truth"]["error_px"] is not None]
         out["correct_error_px"] = float(np.median(errors)) if errors else None  # median over pairs of each pair's median
     if per_pair and "oracle" in per_pair[0]:
