@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import subprocess
 import sys
 import time
@@ -547,3 +548,63 @@ def test_ensure_preset_caches(tmp_path, monkeypatch, capsys):
     # own, so a cache of the earlier sequences is never taken for the new ones
     assert cache.preset_dir("bench", 0) == tmp_path / "envcache" / "sim" / "bench-seed0-v1r2"
     assert cache.preset_dir("tiny", 3, tmp_path / "y") == tmp_path / "y" / "tiny-seed3-v1"
+
+
+def _dead_pid() -> int:
+    """The id of a process that has ended (reaped, so the kernel reports it as gone)."""
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_remove_abandoned_deletes_only_folders_of_ended_generations(tmp_path, capsys):
+    from aerovis_slam.sim import cache
+
+    final = cache.preset_dir("tiny", 1, tmp_path)
+    host, dead = cache._host(), _dead_pid()
+    two_hours_ago = time.time() - 2 * 3600
+
+    def folder(name: str, mib: int = 0, mtime: float | None = None) -> Path:
+        d = tmp_path / name
+        d.mkdir()
+        (d / "seq.h5.partial").write_bytes(b"\0" * (mib << 20))
+        if mtime is not None:
+            for f in (d / "seq.h5.partial", d):
+                os.utime(f, (mtime, mtime))
+        return d
+
+    gone = [
+        folder(f".tiny-seed1-v1.{host}-{dead}.abc123.tmp", mib=1),     # this host, its process ended
+        folder(".tiny-seed1-v1.k2j4h5g6.tmp", mtime=two_hours_ago),          # an earlier version's name, quiet for 2 h
+        folder(f".tiny-seed1-v1.other-host-{dead}.x1.tmp", mtime=two_hours_ago),  # another host's, quiet for 2 h
+    ]
+    kept = [
+        folder(f".tiny-seed1-v1.{host}-{os.getpid()}.def456.tmp", mtime=two_hours_ago),  # a live process's, however quiet
+        folder(".tiny-seed1-v1.q9w8e7r6.tmp"),                          # an earlier version's name, changed just now
+        folder(f".tiny-seed1-v1.other-host-{dead}.x2.tmp"),             # another host's, changed just now
+        folder(f".tiny-seed2-v1.{host}-{dead}.ghi789.tmp"),             # another preset's: its own calls sweep it
+    ]
+    assert sorted(cache.remove_abandoned(final)) == sorted(gone)
+    assert all(d.is_dir() for d in kept) and not any(d.exists() for d in gone)
+    err = capsys.readouterr().err
+    assert err.count("aerovis: removed") == 3 and "(1.0 MiB)" in err
+    assert cache.remove_abandoned(final) == []
+    assert cache.remove_abandoned(cache.preset_dir("tiny", 0, tmp_path / "absent")) == []
+
+
+def test_ensure_preset_removes_the_folder_of_a_killed_generation(tmp_path):
+    """SIGKILL runs no cleanup: the next call for the preset deletes what the killed one left."""
+    from aerovis_slam.sim import cache
+
+    code = f"from aerovis_slam.sim.cache import ensure_preset; ensure_preset('tiny', cache_dir={str(tmp_path)!r}, progress=False, workers=1)"
+    proc = subprocess.Popen([sys.executable, "-c", code])
+    pattern = ".tiny-seed0-v1.*.tmp"
+    deadline = time.monotonic() + 120
+    while not list(tmp_path.glob(pattern)) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    proc.kill()
+    proc.wait()
+    left = list(tmp_path.glob(pattern))
+    assert len(left) == 1 and f".{cache._host()}-{proc.pid}." in left[0].name
+    assert cache.remove_abandoned(cache.preset_dir("tiny", 0, tmp_path)) == left
+    assert [p.name for p in tmp_path.iterdir()] == []
