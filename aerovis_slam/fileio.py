@@ -3,7 +3,8 @@
 An atomic write goes to a uniquely named temporary file beside the target (same file system), is
 made world-readable like an ordinary file, and is renamed over the target with ``os.replace``; a
 crash or Ctrl-C at any point leaves either the old file or the new one, never half of one, and no
-temporary file behind.
+temporary file behind. A folder is built the same way (:func:`make_build_dir`, renamed when
+complete); :func:`remove_abandoned` deletes the build folders of killed processes.
 
 Example:
     >>> import tempfile, pathlib
@@ -16,7 +17,12 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import shutil
+import socket
+import sys
 import tempfile
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -74,3 +80,79 @@ def prepare_out_dir(out_dir: str | os.PathLike) -> Path:
     if not os.access(out_dir, os.W_OK | os.X_OK):
         raise DataError(out_dir, "output folder is not writable")
     return out_dir
+
+
+# A build folder with no owner in its name (written by an earlier version) or another host's counts
+# as abandoned after this long without a change: a live build writes its files every few seconds.
+_UNOWNED_QUIET_S = 3600.0
+
+
+def _host() -> str:
+    """This machine's name as it appears in temporary folder names (letters, digits, ``_``, ``-``)."""
+    return re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname()) or "host"
+
+
+def make_build_dir(final: str | os.PathLike) -> Path:
+    """A new private folder beside ``final`` to build it in, then rename to ``final``:
+    ``.<final name>.<host>-<pid>.<random>.tmp``, so that :func:`remove_abandoned` can tell whether
+    the process building it still runs."""
+    final = Path(final)
+    return Path(tempfile.mkdtemp(prefix=f".{final.name}.{_host()}-{os.getpid()}.", suffix=".tmp", dir=final.parent))
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    return True
+
+
+def _newest_change(folder: Path) -> float:
+    """Latest modification time (s since the epoch) of ``folder`` and the files in it."""
+    times = [folder.stat().st_mtime]
+    for f in folder.iterdir():
+        try:
+            times.append(f.stat().st_mtime)
+        except OSError:  # renamed meanwhile by its generator
+            pass
+    return max(times)
+
+
+def remove_abandoned(final: str | os.PathLike, *, now: float | None = None) -> list[Path]:
+    """Delete the build folders of ``final`` (:func:`make_build_dir`) whose process has ended; returns them.
+
+    A process killed outright (SIGKILL, or SIGTERM, which runs no Python cleanup) cannot delete its
+    build folder, which may hold gigabytes; callers sweep before using or building ``final``.
+    A folder named by :func:`make_build_dir` on this host is abandoned when its process no longer
+    exists (a live one, or a new process that reused the id, keeps it: erring towards keeping). One
+    from another host, or from a version that did not record its owner, is abandoned when nothing
+    in it has changed for an hour. Each removal is reported on stderr with its size.
+    """
+    final = Path(final)
+    root = final.parent
+    if not root.is_dir():
+        return []
+    host = _host()
+    now = time.time() if now is None else now
+    owned = re.compile(re.escape(f".{final.name}.") + r"(?P<host>[A-Za-z0-9_-]+)-(?P<pid>\d+)\.")
+    removed = []
+    for d in sorted(root.glob(f".{final.name}.*.tmp")):
+        try:
+            m = owned.match(d.name)
+            if m and m["host"] == host:
+                if _pid_alive(int(m["pid"])):
+                    continue
+            elif now - _newest_change(d) < _UNOWNED_QUIET_S:
+                continue
+            size = sum(f.stat().st_size for f in d.iterdir() if f.is_file())
+        except OSError:  # removed or renamed by its owner meanwhile
+            continue
+        shutil.rmtree(d, ignore_errors=True)
+        if not d.exists():
+            removed.append(d)
+            print(f"aerovis: removed {d} ({size / 2**20:.1f} MiB), left by a build that was killed before it "
+                  "finished", file=sys.stderr)
+    return removed

@@ -13,7 +13,8 @@ No library does this for HDF5 (h5py's chunk cache is per process and per dataset
 Layout: ``<cache_dir>/<key>/<cam>_{t,x,y,p,frames,depth}.npy`` with ``key`` from the file's resolved
 path, size and modification time, so a regenerated sequence gets a fresh copy. A copy is built in a
 temporary folder and renamed into place: concurrent loader workers that build the same copy end with
-one complete folder, and an interrupted build leaves nothing that looks finished. Copies of files that
+one complete folder, and an interrupted build leaves nothing that looks finished (the build folder of a
+killed run is deleted by the next :func:`prepare_decoded` of that sequence). Copies of files that
 changed since are not removed: delete the cache folder to reclaim the space.
 """
 
@@ -22,12 +23,12 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from aerovis_slam.events import EventArray
+from aerovis_slam.fileio import make_build_dir, remove_abandoned
 from aerovis_slam.io.sequence import Sequence
 
 
@@ -43,7 +44,7 @@ def build_decoded(seq: Sequence, folder: Path) -> Path:
     if folder.is_dir():
         return folder
     folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=folder.parent))
+    tmp = make_build_dir(folder)
     try:
         for cam in seq.cameras:
             ev = seq.events(cam)
@@ -69,6 +70,8 @@ def prepare_decoded(paths: list[str | os.PathLike], cache_dir: str | os.PathLike
     from tqdm import tqdm
 
     folders = {Path(p): Path(cache_dir) / cache_key(p) for p in paths}
+    for folder in folders.values():
+        remove_abandoned(folder)
     todo = [(path, folder) for path, folder in folders.items() if not folder.is_dir()]
     for path, folder in tqdm(todo, desc="decoding sequences (data.event_cache)", unit="seq", disable=not progress or not todo):
         with Sequence(path) as seq:

@@ -558,10 +558,11 @@ def _dead_pid() -> int:
 
 
 def test_remove_abandoned_deletes_only_folders_of_ended_generations(tmp_path, capsys):
+    from aerovis_slam import fileio
     from aerovis_slam.sim import cache
 
     final = cache.preset_dir("tiny", 1, tmp_path)
-    host, dead = cache._host(), _dead_pid()
+    host, dead = fileio._host(), _dead_pid()
     two_hours_ago = time.time() - 2 * 3600
 
     def folder(name: str, mib: int = 0, mtime: float | None = None) -> Path:
@@ -584,17 +585,18 @@ def test_remove_abandoned_deletes_only_folders_of_ended_generations(tmp_path, ca
         folder(f".tiny-seed1-v1.other-host-{dead}.x2.tmp"),             # another host's, changed just now
         folder(f".tiny-seed2-v1.{host}-{dead}.ghi789.tmp"),             # another preset's: its own calls sweep it
     ]
-    assert sorted(cache.remove_abandoned(final)) == sorted(gone)
+    assert sorted(fileio.remove_abandoned(final)) == sorted(gone)
     assert all(d.is_dir() for d in kept) and not any(d.exists() for d in gone)
     err = capsys.readouterr().err
     assert err.count("aerovis: removed") == 3 and "(1.0 MiB)" in err
-    assert cache.remove_abandoned(final) == []
-    assert cache.remove_abandoned(cache.preset_dir("tiny", 0, tmp_path / "absent")) == []
+    assert fileio.remove_abandoned(final) == []
+    assert fileio.remove_abandoned(cache.preset_dir("tiny", 0, tmp_path / "absent")) == []
 
 
-def test_ensure_preset_removes_the_folder_of_a_killed_generation(tmp_path):
+def test_ensure_preset_removes_the_folder_of_a_killed_generation(tmp_path, monkeypatch, capsys):
     """SIGKILL runs no cleanup: the next call for the preset deletes what the killed one left."""
-    from aerovis_slam.sim import cache
+    from aerovis_slam import fileio
+    from aerovis_slam.sim import cli
 
     code = f"from aerovis_slam.sim.cache import ensure_preset; ensure_preset('tiny', cache_dir={str(tmp_path)!r}, progress=False, workers=1)"
     proc = subprocess.Popen([sys.executable, "-c", code])
@@ -605,6 +607,10 @@ def test_ensure_preset_removes_the_folder_of_a_killed_generation(tmp_path):
     proc.kill()
     proc.wait()
     left = list(tmp_path.glob(pattern))
-    assert len(left) == 1 and f".{cache._host()}-{proc.pid}." in left[0].name
-    assert cache.remove_abandoned(cache.preset_dir("tiny", 0, tmp_path)) == left
-    assert [p.name for p in tmp_path.iterdir()] == []
+    assert len(left) == 1 and f".{fileio._host()}-{proc.pid}." in left[0].name
+    orig = cli.run_preset  # the regeneration, shortened to 0.1 s per sequence to keep the test fast
+    monkeypatch.setattr(cli, "run_preset", lambda name, out, seed=0, progress=True, workers=None: orig(name, out, seed=seed, duration=0.1,
+                                                                                                 progress=False, workers=workers))
+    assert ensure_preset("tiny", cache_dir=str(tmp_path), progress=False) == tmp_path / "tiny-seed0-v1"
+    assert [p.name for p in tmp_path.iterdir()] == ["tiny-seed0-v1"]
+    assert f"aerovis: removed {left[0]}" in capsys.readouterr().err

@@ -593,15 +593,24 @@ def test_bad_training_input_is_explained(tmp_path):
 def test_decoded_event_cache_gives_the_same_samples(tmp_path, sim_cache):
     """data.event_cache: the copies are built when the dataset is made; pairs drawn through them equal
     those read from the compressed files (MCTS, frames, depth: every tensor of every sample); one
-    complete copy per sequence is left, no temporary folder, and a second dataset reuses the copies."""
+    complete copy per sequence is left, no temporary folder (a killed run's is deleted), and a second
+    dataset reuses the copies."""
     import torch
 
+    from aerovis_slam import fileio
     from aerovis_slam.mcts import MCTS_NE_EVENTS_PER_PX
     from aerovis_slam.sim.cache import ensure_preset
     from aerovis_train.data import EventPairDataset, MctsSpec
     from aerovis_train.decoded import cache_key
 
     paths = sorted(ensure_preset("tiny", str(sim_cache), progress=False).glob("*.h5"))
+    # the build folder of a run killed while decoding the first sequence (its process has ended)
+    killed = subprocess.Popen([sys.executable, "-c", "pass"])
+    killed.wait()
+    (tmp_path / "decoded").mkdir()
+    left = tmp_path / "decoded" / f".{cache_key(paths[0])}.{fileio._host()}-{killed.pid}.abc.tmp"
+    left.mkdir()
+    (left / "left_t.npy").write_bytes(b"\0" * 1024)
     kw = dict(crop=(40, 56), samples_per_epoch=6, seed=3)
     plain = EventPairDataset(paths, MctsSpec("ne", MCTS_NE_EVENTS_PER_PX), **kw)
     cached = EventPairDataset(paths, MctsSpec("ne", MCTS_NE_EVENTS_PER_PX), event_cache=tmp_path / "decoded", **kw)

@@ -9,7 +9,7 @@ run never leaves a folder that looks finished, and two concurrent callers end wi
 A run killed outright (SIGKILL, or SIGTERM from a job scheduler or ``timeout``: no Python cleanup
 runs) leaves its temporary folder behind, up to the preset's size (1.5 GB for ``train``); every
 later call for the same preset removes such folders once their process has ended
-(:func:`remove_abandoned`).
+(:func:`aerovis_slam.fileio.remove_abandoned`).
 
 Example:
     >>> import tempfile
@@ -22,15 +22,11 @@ Example:
 from __future__ import annotations
 
 import os
-import re
 import shutil
-import socket
-import sys
-import tempfile
-import time
 from pathlib import Path
 
 from ..errors import DataError
+from ..fileio import make_build_dir, remove_abandoned
 
 
 def cache_root() -> Path:
@@ -83,7 +79,7 @@ def ensure_preset(name: str, cache_dir: str | None = None, seed: int = 0, *, pro
         return final
     try:
         root.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=_tmp_prefix(final), suffix=".tmp", dir=root))
+        tmp = make_build_dir(final)
     except OSError as exc:
         raise DataError(root, f"cache folder is not writable ({exc.strerror})") from None
     try:
@@ -97,76 +93,6 @@ def ensure_preset(name: str, cache_dir: str | None = None, seed: int = 0, *, pro
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return final
-
-
-# A folder of an earlier version's generation (no owner in its name) counts as abandoned after
-# this long without a change: a live generation rewrites its .partial files every few seconds.
-_UNOWNED_QUIET_S = 3600.0
-
-
-def _host() -> str:
-    """This machine's name as it appears in temporary folder names (letters, digits, ``_``, ``-``)."""
-    return re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname()) or "host"
-
-
-def _tmp_prefix(final: Path) -> str:
-    """Temporary folder prefix of a generation of ``final`` by this process: ``.<final>.<host>-<pid>.``."""
-    return f".{final.name}.{_host()}-{os.getpid()}."
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's live process
-        return True
-    return True
-
-
-def _newest_change(folder: Path) -> float:
-    """Latest modification time (s since the epoch) of ``folder`` and the files in it."""
-    times = [folder.stat().st_mtime]
-    for f in folder.iterdir():
-        try:
-            times.append(f.stat().st_mtime)
-        except OSError:  # renamed meanwhile by its generator
-            pass
-    return max(times)
-
-
-def remove_abandoned(final: Path, *, now: float | None = None) -> list[Path]:
-    """Delete temporary folders of generations of ``final`` whose process has ended; returns them.
-
-    A folder named by :func:`_tmp_prefix` on this host is abandoned when its process no longer
-    exists (a live one, or a new process that reused the id, keeps it: erring towards keeping). One
-    from another host, or from a version that did not record its owner, is abandoned when nothing
-    in it has changed for an hour. Each removal is reported on stderr with its size.
-    """
-    root = final.parent
-    if not root.is_dir():
-        return []
-    host = _host()
-    now = time.time() if now is None else now
-    owned = re.compile(re.escape(f".{final.name}.") + r"(?P<host>[A-Za-z0-9_-]+)-(?P<pid>\d+)\.")
-    removed = []
-    for d in sorted(root.glob(f".{final.name}.*.tmp")):
-        try:
-            m = owned.match(d.name)
-            if m and m["host"] == host:
-                if _pid_alive(int(m["pid"])):
-                    continue
-            elif now - _newest_change(d) < _UNOWNED_QUIET_S:
-                continue
-            size = sum(f.stat().st_size for f in d.iterdir() if f.is_file())
-        except OSError:  # removed or renamed by its owner meanwhile
-            continue
-        shutil.rmtree(d, ignore_errors=True)
-        if not d.exists():
-            removed.append(d)
-            print(f"aerovis: removed {d} ({size / 2**20:.1f} MiB), left by a generation that was killed before it "
-                  "finished", file=sys.stderr)
-    return removed
 
 
 _noted: set[Path] = set()
@@ -183,6 +109,7 @@ def _note_opencv_mismatch(folder: Path) -> None:
     before this record (no ``opencv`` in ``summary.json``) are not checked.
     """
     import json
+    import sys
 
     import cv2
 
