@@ -129,7 +129,9 @@ def remove_abandoned(final: str | os.PathLike, *, now: float | None = None) -> l
     A folder named by :func:`make_build_dir` on this host is abandoned when its process no longer
     exists (a live one, or a new process that reused the id, keeps it: erring towards keeping). One
     from another host, or from a version that did not record its owner, is abandoned when nothing
-    in it has changed for an hour. Each removal is reported on stderr with its size.
+    in it has changed for an hour. Each removal is reported on stderr with its size. (Containers that
+    share one cache folder must not share a host name, or one could take another's live build for a
+    dead process's: their process ids are separate.)
     """
     final = Path(final)
     root = final.parent
