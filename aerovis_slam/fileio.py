@@ -121,7 +121,7 @@ def _newest_change(folder: Path) -> float:
     return max(times)
 
 
-def remove_abandoned(final: str | os.PathLike, *, now: float | None = None) -> list[Path]:
+def remove_abandoned(final: str | os.PathLike) -> list[Path]:
     """Delete the build folders of ``final`` (:func:`make_build_dir`) whose process has ended; returns them.
 
     A process killed outright (SIGKILL, or SIGTERM, which runs no Python cleanup) cannot delete its
@@ -138,7 +138,7 @@ def remove_abandoned(final: str | os.PathLike, *, now: float | None = None) -> l
     if not root.is_dir():
         return []
     host = _host()
-    now = time.time() if now is None else now
+    now = time.time()
     owned = re.compile(re.escape(f".{final.name}.") + r"(?P<host>[A-Za-z0-9_-]+)-(?P<pid>\d+)\.")
     removed = []
     for d in sorted(root.glob(f".{final.name}.*.tmp")):

@@ -3,6 +3,8 @@ need them skip with a reason when it is absent (a user's fresh clone has no ``..
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -22,6 +24,14 @@ def randomise_batchnorm(net, seed: int = 0) -> None:
             if isinstance(m, torch.nn.BatchNorm2d):
                 m.running_mean.copy_(0.1 * torch.randn(m.num_features, generator=g))
                 m.running_var.copy_(0.5 + torch.rand(m.num_features, generator=g))
+
+
+def dead_pid() -> int:
+    """The id of a process that has ended (reaped, so the kernel reports it as gone): the owner of a
+    build folder left by a killed run (``aerovis_slam.fileio.remove_abandoned``)."""
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
 
 
 @pytest.fixture(scope="session")

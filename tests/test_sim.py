@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import yaml
 
+from conftest import dead_pid
 from aerovis_slam.errors import DataError
 from aerovis_slam.io.sequence import Sequence
 from aerovis_slam.sim import (
@@ -507,17 +508,21 @@ def test_parallel_generation_matches_serial(tmp_path):
     assert not (tmp_path / "w0").exists()
 
 
-def test_ensure_preset_caches(tmp_path, monkeypatch, capsys):
-    monkeypatch.setenv("AEROVIS_CACHE", str(tmp_path / "envcache"))
-    from aerovis_slam.sim import cache
-
-    assert cache.cache_root() == tmp_path / "envcache" / "sim"
-    # Generate the tiny preset, shortened to 0.1 s per sequence to keep the test fast.
+def _short_generation(monkeypatch) -> None:
+    """Make ensure_preset generate presets 0.1 s per sequence long, to keep the tests fast."""
     import aerovis_slam.sim.cli as cli
 
     orig = cli.run_preset
     monkeypatch.setattr(cli, "run_preset", lambda name, out, seed=0, progress=True, workers=None: orig(name, out, seed=seed, duration=0.1, progress=False,
                                                                                                  workers=workers))
+
+
+def test_ensure_preset_caches(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("AEROVIS_CACHE", str(tmp_path / "envcache"))
+    from aerovis_slam.sim import cache
+
+    assert cache.cache_root() == tmp_path / "envcache" / "sim"
+    _short_generation(monkeypatch)
     p = ensure_preset("tiny", seed=1)
     assert p == tmp_path / "envcache" / "sim" / "tiny-seed1-v1" and (p / "summary.json").is_file()
     assert [x.name for x in p.parent.iterdir()] == ["tiny-seed1-v1"]  # no temp folder left
@@ -550,19 +555,12 @@ def test_ensure_preset_caches(tmp_path, monkeypatch, capsys):
     assert cache.preset_dir("tiny", 3, tmp_path / "y") == tmp_path / "y" / "tiny-seed3-v1"
 
 
-def _dead_pid() -> int:
-    """The id of a process that has ended (reaped, so the kernel reports it as gone)."""
-    proc = subprocess.Popen([sys.executable, "-c", "pass"])
-    proc.wait()
-    return proc.pid
-
-
 def test_remove_abandoned_deletes_only_folders_of_ended_generations(tmp_path, capsys):
     from aerovis_slam import fileio
     from aerovis_slam.sim import cache
 
     final = cache.preset_dir("tiny", 1, tmp_path)
-    host, dead = fileio._host(), _dead_pid()
+    host, dead = fileio._host(), dead_pid()
     two_hours_ago = time.time() - 2 * 3600
 
     def folder(name: str, mib: int = 0, mtime: float | None = None) -> Path:
@@ -596,7 +594,6 @@ def test_remove_abandoned_deletes_only_folders_of_ended_generations(tmp_path, ca
 def test_ensure_preset_removes_the_folder_of_a_killed_generation(tmp_path, monkeypatch, capsys):
     """SIGKILL runs no cleanup: the next call for the preset deletes what the killed one left."""
     from aerovis_slam import fileio
-    from aerovis_slam.sim import cli
 
     code = f"from aerovis_slam.sim.cache import ensure_preset; ensure_preset('tiny', cache_dir={str(tmp_path)!r}, progress=False, workers=1)"
     proc = subprocess.Popen([sys.executable, "-c", code])
@@ -608,9 +605,7 @@ def test_ensure_preset_removes_the_folder_of_a_killed_generation(tmp_path, monke
     proc.wait()
     left = list(tmp_path.glob(pattern))
     assert len(left) == 1 and f".{fileio._host()}-{proc.pid}." in left[0].name
-    orig = cli.run_preset  # the regeneration, shortened to 0.1 s per sequence to keep the test fast
-    monkeypatch.setattr(cli, "run_preset", lambda name, out, seed=0, progress=True, workers=None: orig(name, out, seed=seed, duration=0.1,
-                                                                                                 progress=False, workers=workers))
+    _short_generation(monkeypatch)
     assert ensure_preset("tiny", cache_dir=str(tmp_path), progress=False) == tmp_path / "tiny-seed0-v1"
     assert [p.name for p in tmp_path.iterdir()] == ["tiny-seed0-v1"]
     assert f"aerovis: removed {left[0]}" in capsys.readouterr().err
