@@ -44,6 +44,14 @@ class Keypoints:
         return len(self.xy)
 
 
+def keep_top_k(kp: Keypoints, top_k: int) -> Keypoints:
+    """The ``top_k`` highest-scoring keypoints (stable order among equal scores); ``kp`` itself if it has no more."""
+    if len(kp) <= top_k:
+        return kp
+    keep = np.argsort(-np.asarray(kp.scores), kind="stable")[:top_k]
+    return Keypoints(kp.xy[keep], kp.scores[keep], kp.descriptors[keep])
+
+
 def nms_mask(scores: np.ndarray, radius: int = 2, threshold: float = 0.0) -> np.ndarray:
     """Local maxima of ``scores`` in a (2r+1)^2 window that exceed ``threshold``: bool (H, W).
 

@@ -9,6 +9,8 @@
 
     aerovis-eval lag --data SEQ.h5|DIR|PRESET [--model ...] [--detector ...] [--out DIR]
 
+    aerovis-eval pairs --data DIR [--model ...] [--detector ...] [--top-k N] [--out FILE.json]
+
 ``pose`` runs the SuperEvent relative-pose protocol (:mod:`aerovis_train.eval.pose`). With a
 folder, every ``*.h5`` in it (not recursive) is evaluated and the pairs of all sequences are
 pooled into one AUC, as the published numbers pool a dataset's sequences. It prints ONE JSON
@@ -23,6 +25,9 @@ go into the JSON line (:func:`~aerovis_train.eval.pose.oracle_pair_errors`).
 
 ``compare`` (:mod:`aerovis_train.eval.compare`) evaluates the shipped models and the classical
 baselines in one run on the same pairs: one table, one JSON line per method.
+
+``pairs`` (:mod:`aerovis_train.eval.pairs`) scores methods on real time-surface pairs whose
+pseudo ground truth comes from intensity frames (correct matches and precision by epipolar distance).
 
 ``lag`` (:mod:`aerovis_train.eval.lag`) measures how far behind its time stamp a detector's
 keypoints show the scene, on data with intensity frames and depth (the simulator's).
@@ -80,9 +85,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar or human summary")
     from .compare import add_parser as add_compare
     from .lag import add_parser as add_lag
+    from .pairs import add_parser as add_pairs
 
     add_compare(sub)
     add_lag(sub)
+    add_pairs(sub)
     return ap
 
 
@@ -105,7 +112,9 @@ def _sequences(data: str) -> list[Path]:
     return [path]
 
 
-def _load_model(name_or_path: str):
+def load_model_arg(name_or_path: str):
+    """A ``--model`` argument (shipped name, checkpoint or bundle folder) as a detector; a model that
+    cannot be loaded is a :class:`UsageError` naming the argument."""
     from .learned import load_detector
 
     try:
@@ -121,7 +130,7 @@ def _pose(args) -> list[dict]:
     if not args.detector and not args.model:
         raise UsageError("give at least one --model or --detector")
     seqs = _sequences(args.data)
-    methods = [(m, _load_model(m)) for m in args.model] + [(d, d) for d in args.detector]
+    methods = [(m, load_model_arg(m)) for m in args.model] + [(d, d) for d in args.detector]
     summaries, outputs = [], []
     for label, detector in methods:
         summary, results = _pose_one(args, seqs, label, detector)
@@ -186,6 +195,10 @@ def main(argv: list[str] | None = None) -> int:
             from .lag import main_lag
 
             return main_lag(args)
+        if args.command == "pairs":
+            from .pairs import main_pairs
+
+            return main_pairs(args)
         if args.command == "pose":
             for summary in _pose(args):
                 if not args.quiet:

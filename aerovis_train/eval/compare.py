@@ -29,6 +29,10 @@ models (424x240 cropped to what every compared model accepts: 400x240 with a Max
 them), timed round-robin for all models in one run (see :func:`onnx_figures`). ``--out DIR`` writes
 ``compare.json`` (summaries, per-sequence and per-pair results, the command), ``compare.md``,
 ``compare.csv`` and, with ``--onnx-latency``, the timed bundles under ``DIR/bundles``.
+
+Given a folder of real time-surface pairs (the layout of :mod:`.real_pairs`), every method is scored as
+``aerovis-eval pairs`` scores it instead (``matches``, ``correct``, ``precision`` per row); learned models
+of a time surface other than the pairs' MCTS_dt are left out and listed.
 """
 
 from __future__ import annotations
@@ -45,7 +49,7 @@ from pathlib import Path
 from aerovis_slam.errors import DataError
 from aerovis_slam.io.sequence import Sequence
 
-from .cli import UsageError, _load_model, _sequences, pooled_summary
+from .cli import UsageError, load_model_arg, _sequences, pooled_summary
 from .pose import evaluate_sequence, plan_frames
 
 DEFAULT_MODELS = ("superlite", "superevent_plus", "superevent")
@@ -90,7 +94,7 @@ def resolve_models(specs: list[str]) -> tuple[list[Method], list[str]]:
         if target in SHIPPED and not (WEIGHTS_DIR / f"{target}.pt").exists():
             missing.append(target)
             continue
-        det = _load_model(target)
+        det = load_model_arg(target)
         if not label:
             label = target if target in SHIPPED else det.name
         det.name = label
@@ -330,7 +334,8 @@ def add_parser(sub) -> None:
     from .pose import ESTIMATORS
 
     p = sub.add_parser("compare", help="learned models and classical baselines in one run on the same pairs: one table, one JSON line each")
-    p.add_argument("--data", required=True, help="canonical sequence (.h5), a folder of them (pooled) or a simulator preset (bench, tiny)")
+    p.add_argument("--data", required=True, help="canonical sequence (.h5), a folder of them (pooled), a simulator preset (bench, tiny), "
+                                                 "or a folder of real time-surface pairs (aerovis-eval pairs: matches, correct, precision)")
     p.add_argument("--models", nargs="*", default=list(DEFAULT_MODELS),
                    help="shipped names, checkpoints (.pt/.ckpt), exported bundle folders, or LABEL=PATH "
                         "(default: the three shipped models; missing ones are listed)")
@@ -369,6 +374,10 @@ def main_compare(args, argv: list[str] | None) -> int:
         print(f"aerovis-eval: compare: no weights installed for {', '.join(missing)} (aerovis_train/weights/<name>.pt): left out; "
               f"pass a checkpoint as LABEL=PATH to include it", file=sys.stderr)
     methods += [Method(d, d, "classical", None, args.classical_mcts, None) for d in args.detectors]
+    from .real_pairs import is_real_pairs_folder
+
+    if is_real_pairs_folder(args.data):
+        return _compare_real_pairs(args, argv, methods, missing, host)
     out = run_compare(args.data, methods, cam=args.cam, rate_hz=None if args.rate_hz == 0 else args.rate_hz, max_pairs=args.max_pairs,
                       top_k=args.top_k, ransac_px=args.ransac_px, estimator=args.estimator, max_dt_s=args.max_dt_s,
                       max_angle_deg=args.max_angle_deg, onnx_latency=args.onnx_latency,
@@ -396,4 +405,56 @@ def main_compare(args, argv: list[str] | None) -> int:
         write_text(d / "compare.md", f"`{command}`\n\n{out['pairs']} pairs on {len(out['sequences'])} sequence(s)"
                    + (f"; missing: {', '.join(missing)}" if missing else "") + "\n\n" + table)
         write_text(d / "compare.csv", csv_text(rows))
+    return 0
+
+
+def _compare_real_pairs(args, argv, methods: list[Method], missing: list[str], host: dict) -> int:
+    """``compare`` on a folder of real time-surface pairs (:mod:`.pairs`): the same methods scored by
+    correct matches and precision instead of pose AUC. The pairs' surface is MCTS_dt (the published
+    layout); learned models of another surface are left out and listed."""
+    import os
+
+    from aerovis_train.search.metrics import write_json, write_text
+
+    from .pairs import pooled_table, run_pairs, surface_mismatch
+
+    kind = "dt"
+    usable, left_out = [], []
+    for m in methods:
+        why = surface_mismatch(m.detector, kind) if m.kind == "learned" else None
+        if why:
+            left_out.append({"method": m.label, "reason": why})
+            print(f"aerovis-eval: compare: {why}: left out", file=sys.stderr)
+        else:
+            usable.append(m)
+    if not usable:
+        raise UsageError(f"nothing to compare on {args.data}: no method runs on its MCTS_dt time surfaces")
+    results = run_pairs(args.data, [(m.label, m.detector) for m in usable], kind=kind, top_k=args.top_k, progress=not args.quiet)
+    rows = []
+    for m, r in zip(usable, results):
+        rows.append({**r["summary"], "kind": m.kind, "mcts": kind, "source": m.source, **m.extra})
+    host["loadavg_end"] = os.getloadavg()
+    table = pooled_table(rows)
+    head = (f"{rows[0]['pairs']} real pairs of {args.data}, the same for every method; correct: symmetric epipolar distance "
+            f"below {rows[0]['correct_px']:g} px" + (f"; left out: {', '.join(x['method'] for x in left_out)}" if left_out else "")
+            + (f"; missing: {', '.join(missing)}" if missing else ""))
+    if not args.quiet:
+        print(f"\n{head}\n\n{table}", file=sys.stderr)
+    for r in rows:
+        print(json.dumps(r))
+    sys.stdout.flush()
+    if args.out:
+        d = Path(args.out)
+        command = "aerovis-eval " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
+        write_json(d / "compare.json", {"command": command, "data": str(args.data), "kind": "real_pairs", "pairs": rows[0]["pairs"],
+                                        "left_out": left_out, "missing": missing, "rows": rows,
+                                        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "host": host, "config": vars(args),
+                                        "results": {m.label: r for m, r in zip(usable, results)}})
+        write_text(d / "compare.md", f"`{command}`\n\n{head}\n\n{table}")
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, fieldnames=["method", "kind", "pairs", "matches", "correct", "precision", "keypoints", "latency_ms",
+                                            "source"], lineterminator="\n", extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+        write_text(d / "compare.csv", buf.getvalue())
     return 0

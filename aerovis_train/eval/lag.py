@@ -25,10 +25,11 @@ import numpy as np
 from aerovis_slam.errors import DataError
 from aerovis_slam.geometry import invert_T, sample_depth_nearest, warp_pixels
 from aerovis_slam.io.sequence import Sequence, camera_key
+from aerovis_slam.keypoints import keep_top_k
 from aerovis_slam.mcts import MCTS_DT_WINDOWS_MS, MCTS_NE_EVENTS_PER_PX, TimestampBuffer
 
 from ..labels import CornerLabeller
-from .pose import _stream_surfaces, _truncate, interpolate_poses, mcts_warm_up_us
+from .pose import _stream_surfaces, interpolate_poses, mcts_warm_up_us
 
 #: Lags tried (ms): behind (positive) and, as a check, ahead of the time stamp.
 DEFAULT_LAGS_MS = tuple(range(-30, 91, 5))
@@ -155,7 +156,7 @@ def keypoint_lag(seq_path: str | Path, detector, *, cam: str = "cam0", lags_ms=D
             t = int(times[k])
             if kind == "ne":
                 windows.append(buf.ne_windows_us(t, params))
-            xy = np.asarray(_truncate(detector(mcts), top_k).xy, np.float64)
+            xy = np.asarray(keep_top_k(detector(mcts), top_k).xy, np.float64)
             img = seq.frame(cam, frame_index[t])
             corners = find_corners(img)
             if len(corners) == 0 or len(xy) == 0:
@@ -242,13 +243,13 @@ def main_lag(args) -> int:
 
     from aerovis_slam.fileio import atomic_write_json, prepare_out_dir
 
-    from .cli import UsageError, _load_model, _sequences
+    from .cli import UsageError, load_model_arg, _sequences
 
     if not args.model and not args.detector:
         raise UsageError("give at least one --model or --detector")
     seqs = _sequences(args.data)
     out = prepare_out_dir(args.out) if args.out else None
-    methods = [(m, _load_model(m)) for m in args.model] + [(d, d) for d in args.detector]
+    methods = [(m, load_model_arg(m)) for m in args.model] + [(d, d) for d in args.detector]
     results, summaries = [], []
     for label, detector in methods:
         mine = []

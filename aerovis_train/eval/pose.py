@@ -48,7 +48,7 @@ from aerovis_slam.geometry import pose7_to_matrix, rotation_angle_deg
 from aerovis_slam.geometry import interpolate_poses as _interpolate_pose7
 from aerovis_slam.errors import DataError
 from aerovis_slam.io.sequence import Sequence, camera_key
-from aerovis_slam.keypoints import Keypoints, match_keypoints
+from aerovis_slam.keypoints import Keypoints, keep_top_k, match_keypoints
 from aerovis_slam.mcts import MCTS_DT_WINDOWS_MS, MCTS_NE_EVENTS_PER_PX, TimestampBuffer, warm_up_requirement
 
 AUC_THRESHOLDS_DEG: tuple[float, ...] = (5.0, 10.0, 20.0)
@@ -548,13 +548,6 @@ def mcts_warm_up_us(seq: Sequence, cam: str, mcts_kind: str, params) -> int:
     return max(int(seq.events_by_index(cam, i, i + 1).t[0]), seq.time_range(cam)[0] + int(round(span_us)))
 
 
-def _truncate(kp: Keypoints, top_k: int) -> Keypoints:
-    if len(kp) <= top_k:
-        return kp
-    keep = np.argsort(-np.asarray(kp.scores), kind="stable")[:top_k]
-    return Keypoints(kp.xy[keep], kp.scores[keep], kp.descriptors[keep])
-
-
 @dataclass
 class FramePlan:
     """Frames and pairs of one sequence (what :func:`evaluate_sequence` will detect and match).
@@ -785,7 +778,7 @@ def evaluate_sequence(
             t0 = time.perf_counter()
             kp = detector(mcts)
             det_s.append(time.perf_counter() - t0)
-            kp = _truncate(kp, top_k)
+            kp = keep_top_k(kp, top_k)
             xy = camcal.undistort_points(kp.xy) if (distorted and len(kp)) else np.asarray(kp.xy, np.float64)
             kps[int(needed[k])] = (kp, xy)
             bar.update(1)
