@@ -279,3 +279,21 @@ def test_published_real_pairs_load_and_fit(shared_data):
         ref = pp["reference"]
         # SuperPoint keypoints on 346x260 frames: the fitted F explains most of them within its 1 px threshold
         assert ref["inliers"] >= 0.5 * ref["matches"] and ref["residual_px"] < 1.0
+
+
+def test_compare_on_a_real_pairs_folder_gives_the_same_rows(tmp_path, capsys):
+    x0, x1 = scene(60, seed=8)
+    write_pair(tmp_path / "data" / "rec", x0, x1)
+    data, out = str(tmp_path / "data"), tmp_path / "cmp"
+    assert cli.main(["pairs", "--data", data, "--detector", "orb", "--quiet"]) == 0
+    alone = json.loads(capsys.readouterr().out)
+    # superlite (MCTS_Ne) is left out with its reason; orb's row is the pairs command's
+    assert cli.main(["compare", "--data", data, "--models", "superlite", "--detectors", "orb", "--out", str(out), "--quiet"]) == 0
+    cap = capsys.readouterr()
+    rows = [json.loads(x) for x in cap.out.splitlines()]
+    assert [r["method"] for r in rows] == ["orb"] and "superlite" in cap.err and "left out" in cap.err
+    for key in ("pairs", "matches", "correct", "precision"):
+        assert rows[0][key] == alone[key]
+    saved = json.loads((out / "compare.json").read_text())
+    assert saved["kind"] == "real_pairs" and saved["left_out"][0]["method"] == "superlite"
+    assert (out / "compare.md").read_text().count("| orb |") == 1
