@@ -12,8 +12,19 @@ Realism (v2e): per-pixel thresholds drawn once, ``C+/- ~ N(C, sigma)`` clipped t
 ``[threshold_min, inf)``; leak events (the reference drifts down by ``leak_hz * C+`` per second
 with 10 % per-pixel spread, so an unlit static pixel emits ON events at ~``leak_hz``); and
 shot-noise events (Poisson, ``shot_noise_hz`` per pixel, random polarity). Noise events obey
-the refractory period too, but do not move the reference. The photoreceptor low-pass of v2e
-is not modelled.
+the refractory period too, but do not move the reference. Optional, each off by default (so a
+sequence without them is bit-identical to one made before they existed):
+
+* photoreceptor bandwidth (v2e's intensity-dependent low-pass): the log intensity the pixel sees
+  follows the scene's through a first-order filter of cut-off ``cutoff_hz * (I + 0.1) / 1.1`` (``I``
+  the linear intensity, 1 = the brightest diffuse white), so dark pixels lag and smear;
+* shot noise that rises in the dark: a pixel's rate is ``shot_noise_hz * (1 + (dark - 1)(1 - I))``
+  with ``dark = shot_noise_dark_factor`` (photon noise weighs more at low light);
+* hot pixels: a ``hot_pixel_fraction`` of the pixels fires at about ``hot_pixel_hz`` (0.5-2x, one
+  polarity each), whatever the scene;
+* timestamp jitter: signal events' times get Gaussian noise of ``timestamp_jitter_us``, kept inside
+  their render step so that the stream stays sorted;
+* ON/OFF asymmetry: OFF thresholds ``off_threshold_ratio`` times the ON ones.
 
 Vectorised in numba passes: per-pixel crossing counts (whose running sum gives each pixel's
 output offset), then every crossing's timestamp, pixel by pixel; a merge with the (few) noise
@@ -51,6 +62,13 @@ class EventConfig:
         leak_hz: leak-event rate per pixel (Hz).
         shot_noise_hz: shot-noise rate per pixel (Hz).
         eps: offset in ``L = log(I + eps)`` (relative radiance units; sets the dark floor).
+        cutoff_hz: photoreceptor cut-off frequency at full intensity (Hz); 0: unlimited bandwidth.
+        shot_noise_dark_factor: shot-noise rate in the dark over that at full intensity (1: uniform).
+        hot_pixel_fraction: share of pixels that fire regardless of the scene (0: none).
+        hot_pixel_hz: mean rate of a hot pixel (Hz).
+        timestamp_jitter_us: standard deviation of the signal events' time noise (µs); 0: exact.
+        off_threshold_ratio: OFF threshold over ON threshold (mean and spread); real sensors with an OFF
+            threshold about half the ON one emit about a third of their events as ON (1: symmetric).
     """
 
     threshold: float = 0.2
@@ -61,10 +79,26 @@ class EventConfig:
     leak_hz: float = 0.1
     shot_noise_hz: float = 0.1
     eps: float = 1e-3
+    cutoff_hz: float = 0.0
+    shot_noise_dark_factor: float = 1.0
+    hot_pixel_fraction: float = 0.0
+    hot_pixel_hz: float = 20.0
+    timestamp_jitter_us: float = 0.0
+    off_threshold_ratio: float = 1.0
 
     def __post_init__(self) -> None:
         if self.threshold <= 0 or self.threshold_min <= 0:
             raise ValueError(f"thresholds must be positive (threshold={self.threshold}, threshold_min={self.threshold_min})")
+        for name in ("threshold_sigma", "refractory_us", "leak_hz", "shot_noise_hz", "cutoff_hz", "hot_pixel_hz", "timestamp_jitter_us"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"EventConfig.{name} must be a finite number >= 0, got {v}")
+        if not (np.isfinite(self.off_threshold_ratio) and self.off_threshold_ratio > 0):
+            raise ValueError(f"EventConfig.off_threshold_ratio must be positive, got {self.off_threshold_ratio}")
+        if not (np.isfinite(self.shot_noise_dark_factor) and self.shot_noise_dark_factor > 0):
+            raise ValueError(f"EventConfig.shot_noise_dark_factor must be positive, got {self.shot_noise_dark_factor}")
+        if not 0.0 <= self.hot_pixel_fraction <= 1.0:
+            raise ValueError(f"EventConfig.hot_pixel_fraction must be in [0, 1], got {self.hot_pixel_fraction}")
 
 
 def log_intensity(radiance: np.ndarray, eps: float) -> np.ndarray:
@@ -161,13 +195,21 @@ class EventGenerator:
         shape = (self.height, self.width)
         c = config
         self.c_pos = np.maximum(rng.normal(c.threshold, c.threshold_sigma, shape), c.threshold_min) if c.threshold_sigma > 0 else np.full(shape, c.threshold)
-        self.c_neg = np.maximum(rng.normal(c.threshold, c.threshold_sigma, shape), c.threshold_min) if c.threshold_sigma > 0 else np.full(shape, c.threshold)
+        c_off, sigma_off = c.threshold * c.off_threshold_ratio, c.threshold_sigma * c.off_threshold_ratio
+        self.c_neg = np.maximum(rng.normal(c_off, sigma_off, shape), c.threshold_min) if c.threshold_sigma > 0 else np.full(shape, c_off)
         self.leak_per_s = (c.leak_hz * self.c_pos * np.maximum(rng.normal(1.0, 0.1, shape), 0.0)).ravel() if (c.noise and c.leak_hz > 0) else None
         self.ref = np.zeros(shape)
         self._L = np.zeros(shape)
         self._t = 0
         self._last_t = np.full(self.width * self.height, np.iinfo(np.int64).min // 2, np.int64)
         self._counts = np.zeros(self.width * self.height, np.int64)
+        # drawn after everything above, and only when enabled, so that sequences without hot pixels keep
+        # their random streams (and so their events) unchanged
+        self.hot_pix = np.empty(0, np.int64)
+        if c.noise and c.hot_pixel_fraction > 0:
+            self.hot_pix = np.flatnonzero(rng.random(self.width * self.height) < c.hot_pixel_fraction)
+            self.hot_rate_hz = c.hot_pixel_hz * rng.uniform(0.5, 2.0, len(self.hot_pix))
+            self.hot_pol = rng.integers(0, 2, len(self.hot_pix)).astype(np.int8)
 
     def reset(self, log_image: np.ndarray, t_us: int) -> None:
         """Start at ``t_us`` with the references at the current log intensity (H, W)."""
@@ -186,9 +228,15 @@ class EventGenerator:
         t0, t1 = self._t, int(t_us)
         if t1 < t0:
             raise ValueError(f"time goes backwards: {t1} µs after {t0} µs")
+        c = self.config
+        dt_s = (t1 - t0) * 1e-6
+        if c.cutoff_hz > 0 and t1 > t0:
+            # exact response of the first-order low-pass over the step to the new render (a step input)
+            bandwidth = c.cutoff_hz * (self._intensity(L1) + 0.1) / 1.1
+            L1 = self._L + (1.0 - np.exp(-2.0 * np.pi * bandwidth * dt_s)) * (L1 - self._L)
         ref = self.ref.ravel()
         if self.leak_per_s is not None:
-            ref -= self.leak_per_s * ((t1 - t0) * 1e-6)
+            ref -= self.leak_per_s * dt_s
         L0f, L1f = self._L.ravel(), L1.ravel()
         n = _count_crossings(L1f, ref, self.c_pos.ravel(), self.c_neg.ravel(), self._counts)
         pix = np.empty(n, np.int64)
@@ -196,15 +244,12 @@ class EventGenerator:
         p = np.empty(n, np.int8)
         if n:
             _fill_crossings(L0f, L1f, ref, self.c_pos.ravel(), self.c_neg.ravel(), self._counts, t0, t1, pix, t, p)
-        c = self.config
-        m = self.rng.poisson(c.shot_noise_hz * L1.size * (t1 - t0) * 1e-6) if (c.noise and c.shot_noise_hz > 0 and t1 > t0) else 0
-        npix, nt, npol = np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0, np.int8)
-        if m:
-            npix = self.rng.integers(0, L1.size, m)
-            nt = self.rng.integers(t0 + 1, t1 + 1, m)
-            npol = self.rng.integers(0, 2, m).astype(np.int8)
-            order = np.lexsort((nt, npix))  # group by pixel, time-ordered within
-            npix, nt, npol = npix[order], nt[order], npol[order]
+            if c.timestamp_jitter_us > 0:
+                t = np.clip(t + np.rint(self.rng.normal(0.0, c.timestamp_jitter_us, n)).astype(np.int64), t0 + 1, t1)
+                order = np.lexsort((t, pix))  # the refractory merge wants each pixel's events in time order
+                pix, t, p = pix[order], t[order], p[order]
+        npix, nt, npol = self._noise_events(L1f, t0, t1)
+        m = len(npix)
         if m or c.refractory_us > 0:
             k = n + m
             op, ot, opol = np.empty(k, np.int64), np.empty(k, np.int64), np.empty(k, np.int8)
@@ -215,6 +260,41 @@ class EventGenerator:
         order = np.argsort(t, kind="stable")
         pix, t, p = pix[order], t[order], p[order]
         return EventArray(t, pix % self.width, pix // self.width, p)
+
+    def _intensity(self, L: np.ndarray) -> np.ndarray:
+        """Linear intensity of log intensities ``L``, clipped to [0, 1] (1: the brightest diffuse white)."""
+        return np.clip(np.exp(L) - self.config.eps, 0.0, 1.0)
+
+    def _noise_events(self, L1f: np.ndarray, t0: int, t1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Shot-noise and hot-pixel events of ``(t0, t1]``: (pixel, t, polarity), grouped by pixel, time-ordered within."""
+        c = self.config
+        none = np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0, np.int8)
+        if not c.noise or t1 <= t0:
+            return none
+        dt_s = (t1 - t0) * 1e-6
+        parts = []
+        if c.shot_noise_hz > 0:
+            if c.shot_noise_dark_factor == 1.0:
+                m = self.rng.poisson(c.shot_noise_hz * L1f.size * dt_s)
+                if m:
+                    parts.append((self.rng.integers(0, L1f.size, m), self.rng.integers(t0 + 1, t1 + 1, m),
+                                  self.rng.integers(0, 2, m).astype(np.int8)))
+            else:
+                rate = c.shot_noise_hz * (1.0 + (c.shot_noise_dark_factor - 1.0) * (1.0 - self._intensity(L1f)))
+                cum = np.cumsum(rate)
+                m = self.rng.poisson(cum[-1] * dt_s)
+                if m:  # each noise event at a pixel drawn in proportion to its rate
+                    npix = np.minimum(np.searchsorted(cum, self.rng.random(m) * cum[-1], side="right"), L1f.size - 1)
+                    parts.append((npix, self.rng.integers(t0 + 1, t1 + 1, m), self.rng.integers(0, 2, m).astype(np.int8)))
+        if len(self.hot_pix):
+            k = self.rng.poisson(self.hot_rate_hz * dt_s)
+            if k.any():
+                parts.append((np.repeat(self.hot_pix, k), self.rng.integers(t0 + 1, t1 + 1, int(k.sum())), np.repeat(self.hot_pol, k)))
+        if not parts:
+            return none
+        npix, nt, npol = (np.concatenate(x) for x in zip(*parts))
+        order = np.lexsort((nt, npix))  # group by pixel, time-ordered within
+        return npix[order], nt[order], npol[order]
 
 
 def video_to_events(

@@ -502,13 +502,38 @@ def make_texture(rng: np.random.Generator, h: int, w: int, kind: str | None = No
     return cv2.GaussianBlur(img, (0, 0), 1.5)
 
 
+#: Photographs bundled with scikit-image (public domain or CC0, per its data README) that show real
+#: scenes and surfaces: posters with natural image statistics, which procedural textures lack.
+PHOTO_TEXTURES = ("astronaut", "brick", "camera", "chelsea", "coffee", "coins", "grass", "gravel", "page", "rocket", "text")
+PHOTO_PREFIX = "skimage:"
+
+
+def photo_texture_path(name: str) -> Path:
+    """The file of a scikit-image photograph (``skimage:coffee`` or ``coffee``), read without importing skimage.
+
+    Raises:
+        DataError: scikit-image is not installed (it comes with the ``train`` extra), or no such photograph.
+    """
+    import importlib.util
+
+    name = name[len(PHOTO_PREFIX):] if name.startswith(PHOTO_PREFIX) else name
+    spec = importlib.util.find_spec("skimage")
+    if spec is None or not spec.submodule_search_locations:
+        raise DataError(None, f"texture {PHOTO_PREFIX}{name}: scikit-image is not installed (pip install -e '.[train]')")
+    folder = Path(next(iter(spec.submodule_search_locations))) / "data"
+    found = sorted(folder.glob(f"{name}.*"))
+    if not found:
+        raise DataError(folder, f"no photograph {name!r} (scikit-image's data holds {sorted(p.stem for p in folder.glob('*.png'))})")
+    return found[0]
+
+
 def load_texture_image(path: str | os.PathLike, max_side: int = MAX_TEXTURE) -> np.ndarray:
-    """A user image as an albedo texture (float32 in [0.06, 0.9]).
+    """A user image (or ``skimage:NAME``, one of :data:`PHOTO_TEXTURES`) as an albedo texture (float32 in [0.06, 0.9]).
 
     Raises:
         DataError: when the file is missing or not a readable image.
     """
-    p = Path(path)
+    p = photo_texture_path(str(path)) if str(path).startswith(PHOTO_PREFIX) else Path(path)
     img = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) if p.is_file() else None
     if img is None:
         raise DataError(p, "cannot read texture image (missing, unreadable or not an image format OpenCV decodes)")

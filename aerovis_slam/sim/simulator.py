@@ -53,6 +53,15 @@ def tone_map(radiance: np.ndarray) -> np.ndarray:
     return np.round(255.0 * x).astype(np.uint8)
 
 
+def vignette(cam, strength: float) -> np.ndarray:
+    """float32 (H, W) radiance factor ``1 - strength (1 - cos^4 theta)`` of a pinhole camera (natural
+    vignetting: theta is each pixel's angle off the optical axis)."""
+    u, v = np.meshgrid(np.arange(cam.width, dtype=np.float64), np.arange(cam.height, dtype=np.float64))
+    tan2 = ((u - cam.cx) / cam.fx) ** 2 + ((v - cam.cy) / cam.fy) ** 2
+    cos4 = 1.0 / (1.0 + tan2) ** 2
+    return (1.0 - strength * (1.0 - cos4)).astype(np.float32)
+
+
 @dataclass
 class SequenceSpec:
     """Everything that defines one simulated sequence (the sequence is a pure function of it).
@@ -64,7 +73,11 @@ class SequenceSpec:
         scene_seed: seed of the room (see :func:`~aerovis_slam.sim.scene.make_scene`).
         hdr: dim room with a bright window.
         lights_off: ``(t_off_s, t_on_s)`` intervals with the room light at 3 %.
-        user_textures: image files for the posters.
+        user_textures: image files for the posters (or ``skimage:NAME`` photographs, see
+            :data:`~aerovis_slam.sim.scene.PHOTO_TEXTURES`).
+        vignetting: lens fall-off towards the image corners, in [0, 1]: radiance times
+            ``1 - vignetting (1 - cos^4 theta)`` (theta the angle off the optical axis), on events and
+            frames alike, as a lens does; 0: none.
         trajectory: kind (see :data:`~aerovis_slam.sim.trajectory.TRAJECTORY_KINDS`).
         trajectory_seed: seed of the trajectory.
         loop: end where it started (``handheld``).
@@ -93,6 +106,7 @@ class SequenceSpec:
     hdr: bool = False
     lights_off: list = field(default_factory=list)
     user_textures: list = field(default_factory=list)
+    vignetting: float = 0.0
     trajectory: str = "handheld"
     trajectory_seed: int = 0
     loop: bool = False
@@ -207,6 +221,9 @@ class Simulator:
         self._fy = np.array([[rig.cameras[c].fy] for c in self.cams])
         self._R_bc = np.stack([T[:3, :3] for T in self.T_body_cam])
         self._p_bc = np.stack([T[:3, 3] for T in self.T_body_cam])
+        if not 0.0 <= spec.vignetting <= 1.0:
+            raise ValueError(f"{spec.name}: vignetting must be in [0, 1], got {spec.vignetting}")
+        self._vignette = {c: vignette(rig.cameras[c], spec.vignetting) for c in self.cams} if spec.vignetting > 0 else None
 
     # -- geometry ---------------------------------------------------------------------------
     def camera_poses(self, t_s: float) -> list[np.ndarray]:
@@ -237,7 +254,10 @@ class Simulator:
 
     def render(self, t_s: float) -> list[tuple[np.ndarray, np.ndarray]]:
         """(radiance, depth) of every camera at ``t_s``."""
-        return [self.scene.render(self.rig.cameras[c], T, t_s) for c, T in zip(self.cams, self.camera_poses(t_s))]
+        views = [self.scene.render(self.rig.cameras[c], T, t_s) for c, T in zip(self.cams, self.camera_poses(t_s))]
+        if self._vignette is not None:
+            views = [(rad * self._vignette[c], dep) for c, (rad, dep) in zip(self.cams, views)]
+        return views
 
     def _step_us(self, t_us: int, z_min: dict[str, float]) -> int:
         spec = self.spec
