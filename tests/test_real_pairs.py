@@ -297,3 +297,20 @@ def test_compare_on_a_real_pairs_folder_gives_the_same_rows(tmp_path, capsys):
     saved = json.loads((out / "compare.json").read_text())
     assert saved["kind"] == "real_pairs" and saved["left_out"][0]["method"] == "superlite"
     assert (out / "compare.md").read_text().count("| orb |") == 1
+
+
+def test_a_bundle_scores_as_its_checkpoint_does(tmp_path, capsys):
+    from aerovis_slam.bundle import DEFAULT_BUNDLE_DIR
+
+    if not (DEFAULT_BUNDLE_DIR / "model.onnx").exists():
+        pytest.skip(f"no default bundle at {DEFAULT_BUNDLE_DIR}")
+    x0, x1 = scene(60, seed=9)
+    rec = tmp_path / "rec"
+    write_pair(rec, x0, x1)
+    for f in (rec / "time_surfaces").glob("*.npz"):  # MCTS_Ne pairs: 8 channels
+        write_surface(f, load_time_surface(f)[:8])
+    assert cli.main(["pairs", "--data", str(tmp_path), "--mcts", "ne", "--model", str(DEFAULT_BUNDLE_DIR), "superlite", "--quiet"]) == 0
+    bundle, torch_model = (json.loads(x) for x in capsys.readouterr().out.splitlines())
+    # the default bundle is the shipped SuperLitE in FP32 (parity-checked at export): the same keypoints and matches
+    assert bundle["keypoints"] == torch_model["keypoints"] and bundle["matches"] == torch_model["matches"]
+    assert bundle["correct"] == torch_model["correct"]

@@ -117,9 +117,9 @@ TRAIN_SENSOR_RANGES = {
     "cutoff_hz": (0.5, 50.0, 2000.0),               # photoreceptor bandwidth at full intensity, log-uniform
     "shot_noise_dark_factor": (0.5, 2.0, 10.0),     # dark pixels' shot noise over bright ones'
     "hot_pixel_fraction": (0.5, 1e-5, 3e-3),        # log-uniform; Prophesee Gen3 recordings show ~3e-3, a DAVIS346 ~5e-5
-    "hot_pixel_hz": (1.0, 2.0, 30.0),               # log-uniform (where there are hot pixels)
+    "hot_pixel_hz": (1.0, 5.0, 300.0),              # log-uniform (where there are hot pixels)
     "timestamp_jitter_us": (0.5, 10.0, 300.0),      # log-uniform
-    "off_threshold_ratio": (0.7, 0.5, 1.0),         # real recordings of moving scenes: 36-37 % ON events, a ratio ~0.56
+    "off_threshold_ratio": (0.8, 0.45, 1.0),        # real recordings of moving scenes: 36-37 % ON events, a ratio ~0.56
     "vignetting": (0.5, 0.2, 1.0),                  # strength of the cos^4 fall-off
     "photos": (0.5, 2, len(PHOTO_TEXTURES)),        # posters from real photographs: how many of them
 }

@@ -86,10 +86,20 @@ def run_pairs(data: str, methods: list[tuple[str, object]], *, kind: str = "dt",
     """:func:`~aerovis_train.eval.real_pairs.evaluate_real_pairs` for each ``(label, detector)``; the time
     surfaces must have the channel count of ``kind``. Returns one result per method, its summary's
     ``method`` set to the label."""
+    from aerovis_slam.errors import DataError
+
+    from .cli import UsageError
+
     channels = 2 * len(SURFACE_PARAMS[kind])
     out = []
-    for label, det in methods:
-        r = evaluate_real_pairs(data, det, top_k=top_k, correct_px=correct_px, channels=channels, progress=progress)
+    for i, (label, det) in enumerate(methods):
+        try:
+            r = evaluate_real_pairs(data, det, top_k=top_k, correct_px=correct_px, channels=channels, progress=progress,
+                                    report_skips=i == 0)  # the same pairs are skipped for every method: say it once
+        except DataError:
+            raise
+        except (ValueError, RuntimeError) as exc:  # e.g. a bundle exported for another input size
+            raise UsageError(f"{label} cannot run on the time surfaces of {data} ({type(exc).__name__}: {exc})") from None
         r["summary"]["method"] = label
         out.append(r)
     return out

@@ -332,7 +332,7 @@ def _check_surface(path: Path, mcts: np.ndarray, channels: int | None, shape: tu
 
 
 def evaluate_real_pairs(root: str | Path, detector, *, top_k: int | None = None, correct_px: float = CORRECT_PX,
-                        channels: int | None = None, progress: bool = True) -> dict:
+                        channels: int | None = None, progress: bool = True, report_skips: bool = True) -> dict:
     """Score one method on every pair under ``root``.
 
     Each time surface goes through ``detector`` (``mcts (C, H, W) -> Keypoints``, or the name of a
@@ -342,6 +342,7 @@ def evaluate_real_pairs(root: str | Path, detector, *, top_k: int | None = None,
 
     Args:
         channels: if given, every time surface must have this many channels.
+        report_skips: print a line on stderr for each skipped pair.
 
     Returns:
         ``{"summary": {...}, "per_pair": [...], "skipped": [{"pair", "reason"}]}``; the summary has
@@ -361,7 +362,8 @@ def evaluate_real_pairs(root: str | Path, detector, *, top_k: int | None = None,
             ref = fit_reference(x0, x1)
         except NoGeometry as exc:
             skipped.append({"pair": pair.name, "reason": str(exc)})
-            print(f"aerovis-eval: skipping {pair.matches}: {exc}", file=sys.stderr)
+            if report_skips:
+                print(f"aerovis-eval: skipping {pair.matches}: {exc}", file=sys.stderr)
             continue
         mcts0 = load_time_surface(pair.surface0)
         _check_surface(pair.surface0, mcts0, channels, None)
