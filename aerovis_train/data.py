@@ -241,7 +241,7 @@ class EventPairDataset(Dataset):
         if self.supervision == "depth":
             keep0, keep1 = cross_view_consistent(kp0, kp1, g0, g1), cross_view_consistent(kp1, kp0, g1, g0)
             kp0, kp1 = kp0[keep0], kp1[keep1]
-        kp0, kp1 = _where_events(kp0, mcts0), _where_events(kp1, mcts1)
+        kp0, kp1 = where_events(kp0, mcts0), where_events(kp1, mcts1)
         # crop window (same in both views), applied to images, intrinsics, depth and labels
         h, w = mcts0.shape[1:]
         ch, cw = self.crop or (h - h % 8, w - w % 8)
@@ -271,7 +271,7 @@ class EventPairDataset(Dataset):
         return state
 
 
-def _where_events(xy: np.ndarray, mcts: np.ndarray, radius: int = 1) -> np.ndarray:
+def where_events(xy: np.ndarray, mcts: np.ndarray, radius: int = 1) -> np.ndarray:
     """Keep label points with an event in the longest window within ``radius`` px (the network
     cannot see a corner that produced no events)."""
     if len(xy) == 0:

@@ -7,6 +7,7 @@ from lightning.pytorch.utilities import rank_zero_warn
 import torch
 
 from .eval.learned import TorchDetector
+from .homographic import merge_batches, warp_views
 from .losses import (descriptor_loss_depth, descriptor_loss_dual_softmax, descriptor_loss_epipolar, descriptor_loss_terms, detector_loss,
                      repeatability_loss, repeatability_weight)
 from .models import build_model
@@ -73,6 +74,8 @@ class KeypointModule(L.LightningModule):
         return {"loss": total, **losses}
 
     def training_step(self, batch, batch_idx):
+        if "sim" in batch:  # data.real: simulated pairs and self-supervised pairs of real recordings in one batch
+            batch = merge_batches(batch["sim"], warp_views(batch["real"]))
         for key in ("mcts0", "mcts1"):
             if not torch.isfinite(batch[key]).all():
                 raise ValueError(f"non-finite values in batch {batch_idx} ({key}); the data pipeline should have rejected them")

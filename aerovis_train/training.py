@@ -31,6 +31,7 @@ from aerovis_slam.errors import DataError
 
 from .checkpoints import AtomicCheckpointIO, lightning_model_state, save_slim
 from .data import EventPairDataset, make_loader, mcts_spec_from_config
+from .homographic import RealViewDataset
 from .labels import CornerLabeller
 from .models import count_parameters
 from .losses import descriptor_loss_terms, repeatability_weight
@@ -43,11 +44,12 @@ WEIGHT_SELECTIONS = ("best", "last")
 class _EpochSetter(Callback):
     """Gives the dataset the epoch number so random pairs differ between epochs, reproducibly."""
 
-    def __init__(self, dataset: EventPairDataset):
-        self.dataset = dataset
+    def __init__(self, *datasets):
+        self.datasets = [d for d in datasets if d is not None]
 
     def on_train_epoch_start(self, trainer, pl_module):
-        self.dataset.set_epoch(trainer.current_epoch)
+        for d in self.datasets:
+            d.set_epoch(trainer.current_epoch)
 
 
 class LastCheckpoint(Callback):
@@ -170,6 +172,67 @@ def make_dataset(cfg: DictConfig, paths: list[Path], size_multiple: int, samples
         event_cache=event_cache_dir(cfg), roll_deg=float(cfg.data.get("roll_deg", 0.0)),
         labeller=labeller, soft_labels=labeller.subpixel_window > 0,
         pixel_warps=repeatability_weight(cfg.loss) > 0)
+
+
+def real_recordings(cfg: DictConfig) -> tuple[list[Path], int, "HomographyRange"] | None:
+    """``data.real`` checked, before any data is generated: (recordings, pairs per batch from them,
+    homography range), or None without ``data.real``.
+
+    ``data.real_fraction`` of every batch (at least one pair, at most all but one) comes from them.
+
+    Raises:
+        DataError: a setting that mixing cannot honour (pose-only supervision, the repeatability
+            loss, a batch of one, a fraction outside (0, 1), a bad homography range) or a missing recording.
+    """
+    from .homographic import HomographyRange
+
+    real = cfg.data.get("real")
+    if not real:
+        return None
+    batch = int(cfg.data.batch_size)
+    fraction = float(cfg.data.get("real_fraction", 0.25))
+    if not 0.0 < fraction < 1.0:
+        raise DataError(None, f"data.real_fraction={fraction}: the share of each batch from data.real must be in (0, 1)")
+    if str(cfg.data.get("supervision", "depth")) != "depth":
+        raise DataError(None, "data.real mixes homographic pairs, whose targets are warps, with the simulator's: "
+                              "it needs data.supervision=depth")
+    if repeatability_weight(cfg.loss) > 0:
+        raise DataError(None, "data.real: the repeatability loss needs per-pixel warps of the simulator's depth; use loss.repeatability=0")
+    if batch < 2:
+        raise DataError(None, f"data.real needs data.batch_size >= 2 (one simulated and one real pair), got {batch}")
+    try:
+        hrange = HomographyRange(**{k: (tuple(v) if k == "scale" else float(v)) for k, v in dict(cfg.data.get("homography") or {}).items()})
+    except (TypeError, ValueError) as exc:
+        raise DataError(None, f"data.homography: {exc}") from None
+    paths = []
+    for item in [real] if isinstance(real, str) else list(real):
+        p = Path(str(item)).expanduser()
+        paths.extend(sorted(p.glob("*.h5")) if p.is_dir() else [p])
+    for p in paths:
+        if not p.is_file():
+            raise DataError(p, "data.real: recording not found (canonical .h5 files or folders of them; aerovis-data convert)")
+    if not paths:
+        raise DataError(None, f"data.real={real}: no .h5 recordings there")
+    return paths, min(batch - 1, max(1, int(round(batch * fraction)))), hrange
+
+
+def make_real_dataset(cfg: DictConfig, size_multiple: int, sim: EventPairDataset) -> tuple[RealViewDataset | None, int]:
+    """Self-supervised pairs from the recordings of ``data.real`` (:mod:`aerovis_train.homographic`, checked
+    by :func:`real_recordings`) and the simulator's share of each batch: ``(None, data.batch_size)``
+    without ``data.real``. The real dataset is sized so that both loaders end their epoch together."""
+    checked = real_recordings(cfg)
+    batch = int(cfg.data.batch_size)
+    if checked is None:
+        return None, batch
+    paths, n_real, hrange = checked
+    crop = sim.crop or fit_crop(cfg, size_multiple)
+    if crop is None:
+        raise DataError(None, "data.real needs a data.crop: the real recordings' sensors differ from the simulator's")
+    n_sim = batch - n_real
+    steps = max(1, len(sim) // n_sim)
+    dataset = RealViewDataset(paths, sim.mcts, crop=crop, samples_per_epoch=steps * n_real,
+                              seed=int(cfg.seed), homography=hrange, labeller=sim.labeller, soft_labels=sim.soft_labels)
+    return dataset, n_sim
 
 
 def gpu_processes(trainer_cfg) -> int:
@@ -303,6 +366,7 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
     if repeatability_weight(cfg.loss) > 0 and str(cfg.data.get("supervision", "depth")) != "depth":
         raise DataError(None, f"loss.repeatability={cfg.loss.repeatability} needs data.supervision=depth (pixel warps need "
                               f"depth; this run has {cfg.data.supervision!r}); use loss.repeatability=0")
+    real_recordings(cfg)  # data.real refused before any data is generated
     L.seed_everything(int(cfg.seed), workers=True)
     torch.set_num_threads(int(cfg.get("torch_threads") or torch.get_num_threads()))
     run_dir = Path(cfg.run_dir)
@@ -320,10 +384,20 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
               "random initialisation", file=sys.stderr)
     train_paths, val_paths = sequences_from_config(cfg.data)
     dataset = make_dataset(cfg, train_paths, module.model.size_multiple)
+    real_dataset, sim_batch = make_real_dataset(cfg, module.model.size_multiple, dataset)
     workers = loader_workers(cfg)
-    loader = make_loader(dataset, int(cfg.data.batch_size), workers, shuffle=True)
+    loader = make_loader(dataset, sim_batch, workers, shuffle=True)
     print(f"data: {len(train_paths)} training sequences, {workers} loader worker{'s' if workers != 1 else ''}"
           + (f", decoded copies in {dataset.event_cache}" if dataset.event_cache else ""))
+    if real_dataset is not None:
+        from lightning.pytorch.utilities import CombinedLoader
+
+        n_real = int(cfg.data.batch_size) - sim_batch
+        real_loader = make_loader(real_dataset, n_real, workers, shuffle=True)
+        # every step: sim_batch simulated pairs and n_real homographic pairs of real recordings, one batch
+        loader = CombinedLoader({"sim": loader, "real": real_loader}, mode="min_size")
+        print(f"data: {n_real} of {cfg.data.batch_size} pairs a batch from {len(real_dataset.views)} real camera stream(s) "
+              "through random homographies (data.real)")
     val_loader = torch.utils.data.DataLoader([str(p) for p in val_paths], batch_size=None)
     best_cb, last_cb = checkpoint_callbacks(ckpt_dir, float(cfg.checkpoint_every_min))
     loggers = [CSVLogger(run_dir, name="logs", version=""), TensorBoardLogger(run_dir, name="tensorboard", version="")]
@@ -331,7 +405,7 @@ def train(cfg: DictConfig, overrides: list[str] | None = None) -> float:
         **OmegaConf.to_container(cfg.trainer, resolve=True),
         default_root_dir=run_dir,
         logger=loggers,
-        callbacks=[best_cb, last_cb, _EpochSetter(dataset), TQDMProgressBar(refresh_rate=1)],
+        callbacks=[best_cb, last_cb, _EpochSetter(dataset, real_dataset), TQDMProgressBar(refresh_rate=1)],
         plugins=[AtomicCheckpointIO()],
         num_sanity_val_steps=0,
         deterministic=False,
