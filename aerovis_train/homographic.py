@@ -9,8 +9,8 @@ Split between the loader and the training device:
 
 * :class:`RealViewDataset` (loader workers, numpy): a random time of a random recording, its MCTS
   (:func:`~aerovis_train.data.compute_mcts`, the runtime's), a crop, detector labels (Shi-Tomasi
-  corners of the time surface's image, where events are, carried through ``H`` to view 1), the
-  cell-centre targets of the descriptor loss in both directions, and ``H`` itself;
+  corners of the time surface's image that many events support, carried through ``H`` to view 1),
+  the cell-centre targets of the descriptor loss in both directions, and ``H`` itself;
 * :func:`warp_views` (the training device, kornia): view 1 is view 0 warped by ``H``, batched, so that
   the one expensive step (a bilinear warp of every channel) runs on the GPU in a GPU run.
 
@@ -22,6 +22,7 @@ The sample's keys are those of :class:`~aerovis_train.data.EventPairDataset` wit
 from __future__ import annotations
 
 import os
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -102,6 +103,25 @@ def homography_targets(H: np.ndarray, height: int, width: int, cell: int = 8) ->
     return out[0], out[1]
 
 
+WINDOW_TRIES = 8     # windows drawn for a sample before one with few labels is accepted
+MIN_LABELS = 10      # supported corners that make a window worth a sample
+SUPPORT_RADIUS, SUPPORT_MIN = 2, 6  # a corner needs this many active pixels within this radius
+
+
+def supported_corners(xy: np.ndarray, image: np.ndarray) -> np.ndarray:
+    """The corners with at least ``SUPPORT_MIN`` active pixels of ``image`` in their (2r+1)^2 window.
+
+    On a sparse or noisy time surface Shi-Tomasi calls lone noise events corners (the strongest corner
+    sets the threshold, and a lone event is a perfect blob); an edge or a corner of the scene fires many
+    neighbouring pixels, a noise event one."""
+    if len(xy) == 0:
+        return xy
+    k = 2 * SUPPORT_RADIUS + 1
+    count = cv2.boxFilter((image > 0).astype(np.float32), -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    px = np.clip(np.rint(xy).astype(np.int64), 0, [image.shape[1] - 1, image.shape[0] - 1])
+    return xy[count[px[:, 1], px[:, 0]] >= SUPPORT_MIN]
+
+
 class RealViewDataset(Dataset):
     """View-0 samples of self-supervised pairs from canonical recordings (no GT, frames or calibration needed).
 
@@ -137,11 +157,13 @@ class RealViewDataset(Dataset):
                     if h < self.crop[0] or w < self.crop[1]:
                         raise DataError(p, f"{cam} is {w}x{h}, smaller than the {self.crop[1]}x{self.crop[0]} crop (data.crop)")
                     n_events, span_us = warm_up_requirement(mcts.kind, mcts.params, w, h)
-                    if seq.num_events(cam) <= n_events:
+                    first = (max(rng_t[0] + int(round(span_us)), int(seq.events_by_index(cam, n_events, n_events + 1).t[0]))
+                             if seq.num_events(cam) > n_events else None)
+                    if first is None or first >= rng_t[1]:
+                        print(f"train.py: note: data.real: {p} {cam} left out: its {seq.num_events(cam):,} events over "
+                              f"{(rng_t[1] - rng_t[0]) / 1e6:.3f} s never fill a complete MCTS_{mcts.kind}", file=sys.stderr)
                         continue
-                    first = max(rng_t[0] + int(round(span_us)), int(seq.events_by_index(cam, n_events, n_events + 1).t[0]))
-                    if first < rng_t[1]:
-                        self.views.append((p, cam, (w, h), first, rng_t[1]))
+                    self.views.append((p, cam, (w, h), first, rng_t[1]))
         if not self.views:
             raise DataError(paths[0], "no recording in data.real has enough events for a complete time surface")
         self.epoch = 0
@@ -153,20 +175,32 @@ class RealViewDataset(Dataset):
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch
 
+    def _window(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """A random crop of a random time surface and its corner labels (the first of ``WINDOW_TRIES``
+        windows with at least ``MIN_LABELS`` supported corners, else the last one)."""
+        ch, cw = self.crop
+        for _ in range(WINDOW_TRIES):
+            path, cam, (w, h), t_first, t_last = self.views[int(rng.integers(len(self.views)))]
+            if path not in self._open:
+                self._open[path] = Sequence(path)
+            tau = int(rng.integers(t_first, t_last + 1))
+            mcts = compute_mcts(self._open[path], cam, tau, self.mcts, (w, h))
+            if not np.isfinite(mcts).all():
+                raise DataError(path, f"non-finite values in the MCTS of {cam} at {tau} µs")
+            y0, x0 = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
+            mcts = np.ascontiguousarray(mcts[:, y0:y0 + ch, x0:x0 + cw])
+            image = mcts_to_image(mcts)
+            kp = supported_corners(self.labeller(image), image)
+            kp = where_events(kp, mcts)
+            if len(kp) >= MIN_LABELS:
+                break
+        return mcts, kp
+
     def __getitem__(self, index: int) -> dict:
         rng = np.random.default_rng([self.seed, self.epoch, index, 0x4EA1])
-        path, cam, (w, h), t_first, t_last = self.views[int(rng.integers(len(self.views)))]
-        if path not in self._open:
-            self._open[path] = Sequence(path)
-        tau = int(rng.integers(t_first, t_last + 1))
-        mcts = compute_mcts(self._open[path], cam, tau, self.mcts, (w, h))
-        if not np.isfinite(mcts).all():
-            raise DataError(path, f"non-finite values in the MCTS of {cam} at {tau} µs")
+        mcts, kp0 = self._window(rng)
         ch, cw = self.crop
-        y0, x0 = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
-        mcts = np.ascontiguousarray(mcts[:, y0:y0 + ch, x0:x0 + cw])
         H = sample_homography(rng, ch, cw, self.homography)
-        kp0 = where_events(self.labeller(mcts_to_image(mcts)), mcts)
         kp1 = apply_homography(H, kp0)
         # a corner carried into view 1 is a label there where it stays inside the image
         kp1 = kp1[_inside(kp1, cw, ch)].astype(np.float32)

@@ -90,16 +90,17 @@ def test_targets_both_ways_invert_each_other():
 
 def write_recording(path, w=128, h=96, seconds=0.4, seed=0):
     """A canonical sequence with events only (no GT, frames or calibration), as a converted recording:
-    textured squares sliding over the sensor, rendered to events by the simulator's camera model."""
+    textured blocks sliding diagonally over the sensor, rendered to events by the simulator's camera model."""
     from aerovis_slam.sim.events import EventConfig, video_to_events
 
     rng = np.random.default_rng(seed)
     tex = rng.uniform(0.1, 0.9, (h // 8 + 2, w // 8 + 2))
     frames, times = [], []
     for k in range(int(seconds * 200)):
-        shift = 0.25 * k
-        xs = (np.arange(w) + shift) / 8.0
-        img = tex[np.arange(h)[:, None] // 8, np.clip(xs.astype(int), 0, tex.shape[1] - 1)[None, :]]
+        shift = 0.25 * k  # diagonal motion: every edge of the blocks fires
+        xs = np.clip(((np.arange(w) + shift) / 8.0).astype(int), 0, tex.shape[1] - 1)
+        ys = np.clip(((np.arange(h) + 0.7 * shift) / 8.0).astype(int), 0, tex.shape[0] - 1)
+        img = tex[ys[:, None], xs[None, :]]
         frames.append(img)
         times.append(k * 5000)
     ev = video_to_events(np.array(frames), np.array(times, np.int64), EventConfig(threshold=0.15), seed=seed)
@@ -160,3 +161,14 @@ def test_training_mixes_real_recordings_into_its_batches(tmp_path, tiny_cache):
     assert bad.returncode == 2 and "needs data.supervision=depth" in bad.stderr and "Traceback" not in bad.stderr
     bad = _train(tmp_path / "bad2", f"data.real=[{tmp_path / 'none.h5'}]", cache=tiny_cache)
     assert bad.returncode == 2 and "recording not found" in bad.stderr
+
+
+def test_corners_of_lone_noise_events_are_not_labels():
+    from aerovis_train.homographic import SUPPORT_MIN, supported_corners
+
+    img = np.zeros((40, 40), np.uint8)
+    img[10, 10] = 255                 # a lone noise event
+    img[25, 5:20] = 255               # an edge ending at (19, 25): 3 of its pixels within 2 px of the end
+    img[20:25, 19] = 255              # ... and a second edge meeting it there: a corner with 8 active pixels around
+    kept = supported_corners(np.array([[10.0, 10.0], [19.0, 25.0]]), img)
+    assert SUPPORT_MIN > 1 and kept.tolist() == [[19.0, 25.0]]
