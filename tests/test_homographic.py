@@ -168,7 +168,7 @@ def test_corners_of_lone_noise_events_are_not_labels():
 
     img = np.zeros((40, 40), np.uint8)
     img[10, 10] = 255                 # a lone noise event
-    img[25, 5:20] = 255               # an edge ending at (19, 25): 3 of its pixels within 2 px of the end
-    img[20:25, 19] = 255              # ... and a second edge meeting it there: a corner with 8 active pixels around
+    img[25:27, 5:20] = 255            # a 2 px edge ending at x = 19: 6 of its pixels in the 5x5 window around (19, 25)
+    img[20:25, 19:21] = 255           # a second one meeting it there: 4 more, a corner with 10 active pixels around
     kept = supported_corners(np.array([[10.0, 10.0], [19.0, 25.0]]), img)
     assert SUPPORT_MIN > 1 and kept.tolist() == [[19.0, 25.0]]
