@@ -327,6 +327,18 @@ def csv_text(rows: list[dict]) -> str:
     return buf.getvalue()
 
 
+def print_rows(rows: list[dict]) -> None:
+    """One JSON line per row on stdout."""
+    for r in rows:
+        print(json.dumps(r))
+    sys.stdout.flush()
+
+
+def command_line(argv: list[str] | None) -> str:
+    """The command as run, for the records an ``--out`` folder keeps."""
+    return "aerovis-eval " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
+
+
 def add_parser(sub) -> None:
     """The ``compare`` subcommand of ``aerovis-eval``."""
     from aerovis_slam.classical import DETECTORS
@@ -392,12 +404,10 @@ def main_compare(args, argv: list[str] | None) -> int:
     if not args.quiet:
         print(f"\n{out['pairs']} pairs on {len(out['sequences'])} sequence(s) of {args.data}, the same for every method"
               + (f"; missing: {', '.join(missing)}" if missing else "") + "\n" + table, file=sys.stderr)
-    for r in rows:
-        print(json.dumps(r))
-    sys.stdout.flush()
+    print_rows(rows)
     if args.out:
         d = Path(args.out)
-        command = "aerovis-eval " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
+        command = command_line(argv)
         write_json(d / "compare.json", {"command": command, "data": str(args.data), "pairs": out["pairs"], "sequences": out["sequences"],
                                         "skipped": out["skipped"], "missing": missing, "t_start_us": out["t_start_us"], "rows": rows,
                                         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "host": host, "config": vars(args),
@@ -440,12 +450,10 @@ def _compare_real_pairs(args, argv, methods: list[Method], missing: list[str], h
             + (f"; missing: {', '.join(missing)}" if missing else ""))
     if not args.quiet:
         print(f"\n{head}\n\n{table}", file=sys.stderr)
-    for r in rows:
-        print(json.dumps(r))
-    sys.stdout.flush()
+    print_rows(rows)
     if args.out:
         d = Path(args.out)
-        command = "aerovis-eval " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
+        command = command_line(argv)
         write_json(d / "compare.json", {"command": command, "data": str(args.data), "kind": "real_pairs", "pairs": rows[0]["pairs"],
                                         "left_out": left_out, "missing": missing, "rows": rows,
                                         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "host": host, "config": vars(args),
