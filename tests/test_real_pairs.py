@@ -314,3 +314,16 @@ def test_a_bundle_scores_as_its_checkpoint_does(tmp_path, capsys):
     # the default bundle is the shipped SuperLitE in FP32 (parity-checked at export): the same keypoints and matches
     assert bundle["keypoints"] == torch_model["keypoints"] and bundle["matches"] == torch_model["matches"]
     assert bundle["correct"] == torch_model["correct"]
+
+
+def test_each_reference_is_fitted_once_for_all_methods(tmp_path, capsys, monkeypatch):
+    import aerovis_train.eval.real_pairs as rp
+
+    x0, x1 = scene(40, seed=10)
+    write_pair(tmp_path / "a", x0, x1)
+    write_pair(tmp_path / "b", x0, x1)
+    calls = []
+    real_fit = rp.fit_reference
+    monkeypatch.setattr(rp, "fit_reference", lambda *a, **k: calls.append(1) or real_fit(*a, **k))
+    assert cli.main(["pairs", "--data", str(tmp_path), "--detector", "orb", "sift", "gftt_brief", "--quiet"]) == 0
+    assert len(capsys.readouterr().out.splitlines()) == 3 and len(calls) == 2  # two pairs, three methods

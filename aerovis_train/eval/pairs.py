@@ -91,11 +91,12 @@ def run_pairs(data: str, methods: list[tuple[str, object]], *, kind: str = "dt",
     from .cli import UsageError
 
     channels = 2 * len(SURFACE_PARAMS[kind])
-    out = []
+    out, references = [], {}
     for i, (label, det) in enumerate(methods):
         try:
             r = evaluate_real_pairs(data, det, top_k=top_k, correct_px=correct_px, channels=channels, progress=progress,
-                                    report_skips=i == 0)  # the same pairs are skipped for every method: say it once
+                                    report_skips=i == 0,  # the same pairs are skipped for every method: say it once
+                                    references=references)
         except DataError:
             raise
         except (ValueError, RuntimeError) as exc:  # e.g. a bundle exported for another input size

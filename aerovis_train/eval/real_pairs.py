@@ -331,8 +331,24 @@ def _check_surface(path: Path, mcts: np.ndarray, channels: int | None, shape: tu
         raise DataError(path, f"shape {mcts.shape} differs from its pair partner's {shape}")
 
 
+def reference_of(pair: RealPair, cache: dict | None = None) -> tuple[np.ndarray, np.ndarray, Reference | NoGeometry]:
+    """(x0, x1, its :func:`fit_reference` or the :class:`NoGeometry` that refused it) of one pair, fitted
+    once per ``cache`` (a dict the caller keeps across methods)."""
+    if cache is not None and pair.matches in cache:
+        return cache[pair.matches]
+    x0, x1 = load_reference_matches(pair.matches)
+    try:
+        ref: Reference | NoGeometry = fit_reference(x0, x1)
+    except NoGeometry as exc:
+        ref = exc
+    if cache is not None:
+        cache[pair.matches] = (x0, x1, ref)
+    return x0, x1, ref
+
+
 def evaluate_real_pairs(root: str | Path, detector, *, top_k: int | None = None, correct_px: float = CORRECT_PX,
-                        channels: int | None = None, progress: bool = True, report_skips: bool = True) -> dict:
+                        channels: int | None = None, progress: bool = True, report_skips: bool = True,
+                        references: dict | None = None) -> dict:
     """Score one method on every pair under ``root``.
 
     Each time surface goes through ``detector`` (``mcts (C, H, W) -> Keypoints``, or the name of a
@@ -343,6 +359,7 @@ def evaluate_real_pairs(root: str | Path, detector, *, top_k: int | None = None,
     Args:
         channels: if given, every time surface must have this many channels.
         report_skips: print a line on stderr for each skipped pair.
+        references: a dict kept across calls on the same pairs, so that each reference is fitted once.
 
     Returns:
         ``{"summary": {...}, "per_pair": [...], "skipped": [{"pair", "reason"}]}``; the summary has
@@ -357,13 +374,11 @@ def evaluate_real_pairs(root: str | Path, detector, *, top_k: int | None = None,
     per_pair, skipped, det_ms = [], [], []
     built: dict[int, object] = {}
     for pair in tqdm(pairs, desc=f"{name} pairs", unit="pair", file=sys.stderr, disable=not progress, leave=False):
-        x0, x1 = load_reference_matches(pair.matches)
-        try:
-            ref = fit_reference(x0, x1)
-        except NoGeometry as exc:
-            skipped.append({"pair": pair.name, "reason": str(exc)})
+        x0, x1, ref = reference_of(pair, references)
+        if isinstance(ref, NoGeometry):
+            skipped.append({"pair": pair.name, "reason": str(ref)})
             if report_skips:
-                print(f"aerovis-eval: skipping {pair.matches}: {exc}", file=sys.stderr)
+                print(f"aerovis-eval: skipping {pair.matches}: {ref}", file=sys.stderr)
             continue
         mcts0 = load_time_surface(pair.surface0)
         _check_surface(pair.surface0, mcts0, channels, None)
