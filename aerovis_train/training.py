@@ -31,7 +31,7 @@ from aerovis_slam.errors import DataError
 
 from .checkpoints import AtomicCheckpointIO, lightning_model_state, save_slim
 from .data import EventPairDataset, make_loader, mcts_spec_from_config
-from .homographic import RealViewDataset
+from .homographic import HomographyRange, RealViewDataset
 from .labels import CornerLabeller
 from .models import count_parameters
 from .losses import descriptor_loss_terms, repeatability_weight
@@ -174,7 +174,7 @@ def make_dataset(cfg: DictConfig, paths: list[Path], size_multiple: int, samples
         pixel_warps=repeatability_weight(cfg.loss) > 0)
 
 
-def real_recordings(cfg: DictConfig) -> tuple[list[Path], int, "HomographyRange"] | None:
+def real_recordings(cfg: DictConfig) -> tuple[list[Path], int, HomographyRange] | None:
     """``data.real`` checked, before any data is generated: (recordings, pairs per batch from them,
     homography range), or None without ``data.real``.
 
@@ -184,8 +184,6 @@ def real_recordings(cfg: DictConfig) -> tuple[list[Path], int, "HomographyRange"
         DataError: a setting that mixing cannot honour (pose-only supervision, the repeatability
             loss, a batch of one, a fraction outside (0, 1), a bad homography range) or a missing recording.
     """
-    from .homographic import HomographyRange
-
     real = cfg.data.get("real")
     if not real:
         return None

@@ -10,7 +10,6 @@ import pytest
 
 torch = pytest.importorskip("torch", reason="training needs the train extra (torch)")
 
-from aerovis_slam.events import EventArray  # noqa: E402
 from aerovis_slam.io.sequence import SequenceWriter  # noqa: E402
 from aerovis_train.correspondences import cell_centres  # noqa: E402
 from aerovis_train.data import MctsSpec  # noqa: E402

@@ -36,7 +36,6 @@ from .real_pairs import CORRECT_PX, evaluate_real_pairs
 #: the surfaces a pairs folder may hold: its kind -> the project's parameters of that kind
 SURFACE_PARAMS = {"dt": tuple(MCTS_DT_WINDOWS_MS), "ne": tuple(MCTS_NE_EVENTS_PER_PX)}
 SURFACE_NAMES = {"dt": ("MCTS_dt", "windows", "ms"), "ne": ("MCTS_Ne", "events per pixel", "")}
-JSON_KEYS = ("method", "matches", "correct", "precision")
 
 
 def add_parser(sub) -> None:
