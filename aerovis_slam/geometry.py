@@ -263,3 +263,31 @@ def epipolar_distance(xy0: np.ndarray, xy1: np.ndarray, K0: np.ndarray, K1: np.n
     lines = h0 @ F.T  # (N, 3) lines a x + b y + c = 0 in view 1
     num = np.abs(lines @ h1.T)
     return num / np.maximum(np.linalg.norm(lines[:, :2], axis=1, keepdims=True), 1e-12)
+
+
+def symmetric_epipolar_distance(F: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
+    """Symmetric epipolar distance in pixels of correspondences ``x0[i] <-> x1[i]`` under ``F``.
+
+    With ``l1 = F x0`` (the epipolar line of ``x0`` in image 1) and ``l0 = F^T x1``, the distances of
+    each point to the other's line are ``d1 = |x1^T F x0| / |l1[:2]|`` and ``d0 = |x1^T F x0| / |l0[:2]|``;
+    the symmetric distance is ``sqrt(d0^2 + d1^2)`` (Hartley & Zisserman, eq. 11.10, the square root of
+    the quantity SuperGlue thresholds).
+
+    Args:
+        F: (3, 3) with ``x1^T F x0 = 0`` in homogeneous pixels.
+        x0, x1: (N, 2) pixels (x = column, y = row).
+    Returns:
+        (N,) float64 pixels (inf where a line is undefined, i.e. at an epipole).
+    """
+    x0 = np.asarray(x0, np.float64).reshape(-1, 2)
+    x1 = np.asarray(x1, np.float64).reshape(-1, 2)
+    h0 = np.hstack([x0, np.ones((len(x0), 1))])
+    h1 = np.hstack([x1, np.ones((len(x1), 1))])
+    l1 = h0 @ F.T   # F x0 per row
+    l0 = h1 @ F     # F^T x1 per row
+    algebraic = np.abs(np.sum(h1 * l1, axis=1))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d1 = algebraic / np.hypot(l1[:, 0], l1[:, 1])
+        d0 = algebraic / np.hypot(l0[:, 0], l0[:, 1])
+    d = np.hypot(d0, d1)
+    return np.where(np.isfinite(d), d, np.inf)

@@ -99,6 +99,15 @@ def checkpoint_callbacks(ckpt_dir: str | os.PathLike, every_min: float) -> tuple
     return best, LastCheckpoint(ckpt_dir / "last.ckpt", every_min)
 
 
+def expand_sequences(items) -> list[Path]:
+    """Config items (``.h5`` files or folders of them) as sequence paths: a folder gives its ``*.h5``, sorted."""
+    out = []
+    for item in items or []:
+        p = Path(str(item)).expanduser()
+        out.extend(sorted(p.glob("*.h5")) if p.is_dir() else [p])
+    return out
+
+
 def sequences_from_config(data_cfg) -> tuple[list[Path], list[Path]]:
     """(train paths, validation paths) from ``cfg.data``: a simulator preset (generated on first use
     into the cache) or explicit lists/folders of canonical sequences."""
@@ -113,14 +122,7 @@ def sequences_from_config(data_cfg) -> tuple[list[Path], list[Path]]:
             raise DataError(folder, f"preset {data_cfg.preset!r} has {len(paths)} sequences; need more than data.val_sequences={n_val}")
         return paths[:-n_val], paths[-n_val:]
 
-    def expand(items):
-        out = []
-        for item in items or []:
-            p = Path(str(item)).expanduser()
-            out.extend(sorted(p.glob("*.h5")) if p.is_dir() else [p])
-        return out
-
-    train, val = expand(data_cfg.get("train")), expand(data_cfg.get("val"))
+    train, val = expand_sequences(data_cfg.get("train")), expand_sequences(data_cfg.get("val"))
     if not train:
         raise DataError(None, "data.train lists no sequences (give .h5 files or folders of them)")
     for p in train + val:
@@ -202,10 +204,7 @@ def real_recordings(cfg: DictConfig) -> tuple[list[Path], int, HomographyRange] 
         hrange = HomographyRange(**{k: (tuple(v) if k == "scale" else float(v)) for k, v in dict(cfg.data.get("homography") or {}).items()})
     except (TypeError, ValueError) as exc:
         raise DataError(None, f"data.homography: {exc}") from None
-    paths = []
-    for item in [real] if isinstance(real, str) else list(real):
-        p = Path(str(item)).expanduser()
-        paths.extend(sorted(p.glob("*.h5")) if p.is_dir() else [p])
+    paths = expand_sequences([real] if isinstance(real, str) else real)
     for p in paths:
         if not p.is_file():
             raise DataError(p, "data.real: recording not found (canonical .h5 files or folders of them; aerovis-data convert)")

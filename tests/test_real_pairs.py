@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from aerovis_slam.geometry import symmetric_epipolar_distance
 from aerovis_slam.keypoints import Keypoints
 from aerovis_train.eval import cli
 from aerovis_train.eval.real_pairs import (
@@ -20,7 +21,6 @@ from aerovis_train.eval.real_pairs import (
     list_pairs,
     load_time_surface,
     score_matches,
-    symmetric_epipolar_distance,
 )
 
 W, H = 346, 260

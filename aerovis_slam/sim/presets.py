@@ -111,7 +111,7 @@ def _train(seed: int, duration: float | None, n: int = 48) -> list[SequenceSpec]
 #: Domain randomisation of the ``train`` preset's sensors and optics (revision 2), per sequence: each
 #: effect of :class:`~aerovis_slam.sim.events.EventConfig` and the lens is present in a share of the
 #: sequences, at a level drawn from a range around what real sensors show (``aerovis-data stats`` on
-#: real recordings, docs/data.md): (share of sequences, low, high), log-uniform where the range spans
+#: real recordings, docs/real-data.md): (share of sequences, low, high), log-uniform where the range spans
 #: decades. ``bench`` keeps every effect off, so its figures stay comparable.
 TRAIN_SENSOR_RANGES = {
     "cutoff_hz": (0.5, 50.0, 2000.0),               # photoreceptor bandwidth at full intensity, log-uniform

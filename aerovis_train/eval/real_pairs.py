@@ -12,9 +12,9 @@ folder of recordings, each holding
   events share one pixel array, so these are correspondences in time-surface pixels.
 
 No intrinsics come with such pairs, so the reference geometry is the fundamental matrix ``F``
-(``x1^T F x0 = 0``) fitted to the pseudo ground truth by RANSAC and refitted on its inliers
-(:func:`fit_reference`). A method's mutual-nearest-neighbour matches are correct when their
-symmetric epipolar distance to ``F`` (:func:`symmetric_epipolar_distance`) is below a threshold
+(``x1^T F x0 = 0``) fitted to the pseudo ground truth by MAGSAC++ (:func:`fit_reference`). A
+method's mutual-nearest-neighbour matches are correct when their symmetric epipolar distance to ``F``
+(:func:`aerovis_slam.geometry.symmetric_epipolar_distance`) is below a threshold
 (2 px). Epipolar scoring cannot see a wrong match that slides along its epipolar line, so it is an
 upper bound on precision; it needs no depth and no calibration, which is why it is the standard for
 pairs like these.
@@ -37,6 +37,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from aerovis_slam.errors import DataError
+from aerovis_slam.geometry import symmetric_epipolar_distance
 from aerovis_slam.keypoints import Keypoints, keep_top_k, match_keypoints
 
 CORRECT_PX = 2.0          # a match is correct below this symmetric epipolar distance
@@ -174,34 +175,6 @@ def load_reference_matches(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     return kp0[i0].astype(np.float64), kp1[m0[i0]].astype(np.float64)
 
 
-def symmetric_epipolar_distance(F: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
-    """Symmetric epipolar distance in pixels of correspondences ``x0[i] <-> x1[i]`` under ``F``.
-
-    With ``l1 = F x0`` (the epipolar line of ``x0`` in image 1) and ``l0 = F^T x1``, the distances of
-    each point to the other's line are ``d1 = |x1^T F x0| / |l1[:2]|`` and ``d0 = |x1^T F x0| / |l0[:2]|``;
-    the symmetric distance is ``sqrt(d0^2 + d1^2)`` (Hartley & Zisserman, eq. 11.10, the square root of
-    the quantity SuperGlue thresholds).
-
-    Args:
-        F: (3, 3) with ``x1^T F x0 = 0`` in homogeneous pixels.
-        x0, x1: (N, 2) pixels (x = column, y = row).
-    Returns:
-        (N,) float64 pixels (inf where a line is undefined, i.e. at an epipole).
-    """
-    x0 = np.asarray(x0, np.float64).reshape(-1, 2)
-    x1 = np.asarray(x1, np.float64).reshape(-1, 2)
-    h0 = np.hstack([x0, np.ones((len(x0), 1))])
-    h1 = np.hstack([x1, np.ones((len(x1), 1))])
-    l1 = h0 @ F.T   # F x0 per row
-    l0 = h1 @ F     # F^T x1 per row
-    algebraic = np.abs(np.sum(h1 * l1, axis=1))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d1 = algebraic / np.hypot(l1[:, 0], l1[:, 1])
-        d0 = algebraic / np.hypot(l0[:, 0], l0[:, 1])
-    d = np.hypot(d0, d1)
-    return np.where(np.isfinite(d), d, np.inf)
-
-
 @dataclass(frozen=True)
 class Reference:
     """The reference geometry of one pair.
@@ -211,12 +184,14 @@ class Reference:
         inliers: pseudo ground-truth matches within :data:`REFERENCE_RANSAC_PX` of it.
         matches: pseudo ground-truth matches in the file.
         residual_px: median symmetric epipolar distance of the inliers (the reference's own floor).
+        distance_px: (matches,) symmetric epipolar distance of every pseudo ground-truth match.
     """
 
     F: np.ndarray
     inliers: int
     matches: int
     residual_px: float
+    distance_px: np.ndarray
 
 
 class NoGeometry(Exception):
@@ -245,12 +220,13 @@ def fit_reference(x0: np.ndarray, x1: np.ndarray, *, ransac_px: float = REFERENC
                          f"{ransac_px:g} px, at least {min_inliers} needed")
     inl = mask.ravel().astype(bool)
     d = symmetric_epipolar_distance(F, x0, x1)
-    return Reference(F=F / np.linalg.norm(F), inliers=int(inl.sum()), matches=len(x0), residual_px=float(np.median(d[inl])))
+    return Reference(F=F / np.linalg.norm(F), inliers=int(inl.sum()), matches=len(x0), residual_px=float(np.median(d[inl])),
+                     distance_px=d)
 
 
 @dataclass(frozen=True)
 class RealPair:
-    """One pair of the layout (paths only; :func:`load_pair` reads it)."""
+    """One pair of the layout (paths only; :func:`evaluate_real_pairs` reads it)."""
 
     recording: str       # the recording folder, relative to the root given
     frame0: str
@@ -331,19 +307,18 @@ def _check_surface(path: Path, mcts: np.ndarray, channels: int | None, shape: tu
         raise DataError(path, f"shape {mcts.shape} differs from its pair partner's {shape}")
 
 
-def reference_of(pair: RealPair, cache: dict | None = None) -> tuple[np.ndarray, np.ndarray, Reference | NoGeometry]:
-    """(x0, x1, its :func:`fit_reference` or the :class:`NoGeometry` that refused it) of one pair, fitted
-    once per ``cache`` (a dict the caller keeps across methods)."""
+def reference_of(pair: RealPair, cache: dict | None = None) -> Reference | NoGeometry:
+    """The :func:`fit_reference` of one pair, or the :class:`NoGeometry` that refused it; fitted once per
+    ``cache`` (a dict the caller keeps across methods)."""
     if cache is not None and pair.matches in cache:
         return cache[pair.matches]
-    x0, x1 = load_reference_matches(pair.matches)
     try:
-        ref: Reference | NoGeometry = fit_reference(x0, x1)
+        ref: Reference | NoGeometry = fit_reference(*load_reference_matches(pair.matches))
     except NoGeometry as exc:
         ref = exc
     if cache is not None:
-        cache[pair.matches] = (x0, x1, ref)
-    return x0, x1, ref
+        cache[pair.matches] = ref
+    return ref
 
 
 def evaluate_real_pairs(root: str | Path, detector, *, top_k: int | None = None, correct_px: float = CORRECT_PX,
@@ -374,7 +349,7 @@ def evaluate_real_pairs(root: str | Path, detector, *, top_k: int | None = None,
     per_pair, skipped, det_ms = [], [], []
     built: dict[int, object] = {}
     for pair in tqdm(pairs, desc=f"{name} pairs", unit="pair", file=sys.stderr, disable=not progress, leave=False):
-        x0, x1, ref = reference_of(pair, references)
+        ref = reference_of(pair, references)
         if isinstance(ref, NoGeometry):
             skipped.append({"pair": pair.name, "reason": str(ref)})
             if report_skips:
@@ -408,7 +383,7 @@ def evaluate_real_pairs(root: str | Path, detector, *, top_k: int | None = None,
                          "median_distance_px": float(np.median(s["distance_px"])) if s["matches"] else None,
                          "reference": {"matches": ref.matches, "inliers": ref.inliers, "residual_px": ref.residual_px,
                                        # how much of the pseudo ground truth itself passes the threshold
-                                       "agreeing": int(np.sum(symmetric_epipolar_distance(ref.F, x0, x1) < correct_px))}})
+                                       "agreeing": int(np.sum(ref.distance_px < correct_px))}})
     if not per_pair:
         raise DataError(root, f"none of its {len(pairs)} pairs has pseudo ground truth that fits a geometry")
     return {"summary": summarize_pairs(per_pair, skipped, det_ms, name=name, data=str(root), correct_px=correct_px),
